@@ -1,0 +1,126 @@
+//! Network and pipeline speed: template encode, search forward at 224x224 with a 36x36 template
+//! for batch 1/4/8 (criterion reports time per call; divide by the batch for ms per pair),
+//! decode, and whole 1024x1024 / 2048x2048 frames through the matcher.
+//!
+//! Uses the official checkpoint from `../shared/reference` when present (so decode sees real
+//! maps), random weights otherwise (speed does not depend on the values). Before the timings it
+//! prints the network's multiply-adds per pair and this machine's single-precision matmul rate
+//! measured through the same backend, to put GFLOP/s in context.
+
+use std::path::PathBuf;
+use std::time::{Duration, Instant};
+
+use burn::prelude::*;
+use criterion::{BenchmarkId, Criterion, Throughput, criterion_group, criterion_main};
+use posematch::imaging::{InputConvention, RgbImage32};
+use posematch::matcher::{MatchOptions, Matcher};
+use posematch::model::{Tdcm, TdcmConfig, load_weights, multiply_adds, select_device};
+
+fn model(device: &Device) -> (Tdcm, &'static str) {
+    let official =
+        PathBuf::from(env!("CARGO_MANIFEST_DIR")).join("../shared/reference/tdcm-official.pth");
+    match load_weights(&official, device) {
+        Ok(m) => (m, "official checkpoint"),
+        Err(_) => (TdcmConfig::new().init(device), "random weights"),
+    }
+}
+
+/// A textured test frame (smooth pseudo-random pattern) of the given size.
+fn frame(width: u32, height: u32) -> RgbImage32 {
+    let mut pixels = Vec::with_capacity((width * height * 3) as usize);
+    for y in 0..height {
+        for x in 0..width {
+            let (fx, fy) = (x as f32, y as f32);
+            let v = 0.5
+                + 0.25 * (fx * 0.07).sin() * (fy * 0.05).cos()
+                + 0.2 * ((fx * 0.013 + fy * 0.021).sin() * 3.0).sin();
+            pixels.extend_from_slice(&[v, v * 0.9, v * 0.8]);
+        }
+    }
+    RgbImage32::new(width, height, pixels)
+}
+
+fn matmul_gflops(device: &Device) -> f64 {
+    let n = 1024;
+    let a: Tensor<2> = Tensor::ones([n, n], device);
+    let b: Tensor<2> = Tensor::ones([n, n], device);
+    let _ = a.clone().matmul(b.clone()).into_data();
+    let runs = 10;
+    let t = Instant::now();
+    for _ in 0..runs {
+        let _ = a.clone().matmul(b.clone()).into_data();
+    }
+    2.0 * (n * n * n) as f64 * runs as f64 / t.elapsed().as_secs_f64() / 1e9
+}
+
+fn benches(c: &mut Criterion) {
+    let device = select_device().expect("BURN_DEVICE names a compiled backend");
+    let (model, source) = model(&device);
+    let macs = multiply_adds(224, 224, 36);
+    println!(
+        "network: {source}; {:.3} G multiply-adds per 224x224/36 pair ({:.2} GFLOP); \
+         single-precision 1024^3 matmul on this backend: {:.1} GFLOP/s",
+        macs as f64 / 1e9,
+        2.0 * macs as f64 / 1e9,
+        matmul_gflops(&device)
+    );
+    let matcher = Matcher::new(model, device.clone(), InputConvention::ImagenetRgb);
+    let template = frame(36, 36);
+    let encoded = matcher.encode_template(&template).unwrap();
+
+    let mut group = c.benchmark_group("network");
+    group.sample_size(10).measurement_time(Duration::from_secs(8));
+    let template_input = Tensor::<4>::random(
+        [1, 3, 36, 36],
+        burn::tensor::Distribution::Normal(0.0, 1.0),
+        &device,
+    );
+    group.bench_function("template_encode_36", |b| {
+        b.iter(|| {
+            matcher
+                .model()
+                .template_encoder
+                .forward(template_input.clone())
+                .into_data()
+        })
+    });
+    for batch in [1usize, 4, 8] {
+        let images = Tensor::<4>::random(
+            [batch, 3, 224, 224],
+            burn::tensor::Distribution::Normal(0.0, 1.0),
+            &device,
+        );
+        let kernels = Tensor::cat(vec![encoded.kernel.clone(); batch], 0);
+        group.throughput(Throughput::Elements(batch as u64));
+        group.bench_with_input(BenchmarkId::new("search_224_batch", batch), &batch, |b, _| {
+            b.iter(|| {
+                let maps = matcher
+                    .model()
+                    .search_matcher
+                    .forward(images.clone(), kernels.clone());
+                maps.score.into_data()
+            })
+        });
+    }
+    group.finish();
+
+    let mut group = c.benchmark_group("pipeline");
+    group.sample_size(10).measurement_time(Duration::from_secs(10));
+    let options = MatchOptions {
+        refine: false,
+        ..MatchOptions::default()
+    };
+    for side in [224u32, 1024, 2048] {
+        let image = frame(side, side);
+        if side > 224 {
+            group.sample_size(10).measurement_time(Duration::from_secs(30));
+        }
+        group.bench_function(format!("match_{side}x{side}"), |b| {
+            b.iter(|| matcher.match_one(&encoded, &image, &options).unwrap())
+        });
+    }
+    group.finish();
+}
+
+criterion_group!(network, benches);
+criterion_main!(network);

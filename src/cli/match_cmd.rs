@@ -1,0 +1,214 @@
+//! `posematch match`: one pair on the command line, or many from a JSONL file.
+
+use std::collections::HashMap;
+use std::fs::File;
+use std::io::{BufRead, BufReader, BufWriter, Write};
+use std::path::{Path, PathBuf};
+use std::time::Instant;
+
+use clap::Args;
+use serde_json::{Value, json};
+
+use super::{CliError, ModelArgs, load_model, read_image};
+use crate::matcher::{AngleRange, EncodedTemplate, MatchOptions, Matcher, ScaleRange};
+
+#[derive(Args, Debug)]
+pub struct MatchArgs {
+    /// Template image (PNG, JPEG, BMP, TIFF, PNM).
+    #[arg(long, required_unless_present = "pairs", conflicts_with = "pairs")]
+    pub template: Option<PathBuf>,
+    /// Search image.
+    #[arg(long, required_unless_present = "pairs", conflicts_with = "pairs")]
+    pub image: Option<PathBuf>,
+    /// Batch mode: JSONL with one `{"id", "template", "image"[, "max_instances"]}` per line;
+    /// relative paths are relative to this file's folder.
+    #[arg(long, requires = "out")]
+    pub pairs: Option<PathBuf>,
+    /// Batch mode output: one `{"id", "poses", "ms"}` (or `{"id", "error"}`) per input line.
+    #[arg(long, requires = "pairs")]
+    pub out: Option<PathBuf>,
+    #[command(flatten)]
+    pub model: ModelArgs,
+    /// Report at most this many instances, best first.
+    #[arg(long, default_value_t = MatchOptions::default().max_instances)]
+    pub max_instances: usize,
+    /// Ignore score-map peaks below this (0..1).
+    #[arg(long, default_value_t = MatchOptions::default().min_score)]
+    pub min_score: f32,
+    /// Suppress an instance whose rotated box overlaps a better one by more than this IoU.
+    #[arg(long, default_value_t = MatchOptions::default().max_overlap)]
+    pub max_overlap: f32,
+    /// Only report angles in START,END (degrees, counter-clockwise, e.g. -45,45).
+    #[arg(long, value_parser = parse_angle_range, allow_hyphen_values = true)]
+    pub angle_range: Option<AngleRange>,
+    /// Expected object scale LO,HI relative to the template (also steers the search).
+    #[arg(long, value_parser = parse_scale_range)]
+    pub scale_range: Option<ScaleRange>,
+    /// Skip the geometric refinement of each pose.
+    #[arg(long)]
+    pub no_refine: bool,
+    /// Draw the poses on the search image and save it here (PNG).
+    #[arg(long, conflicts_with = "pairs")]
+    pub overlay: Option<PathBuf>,
+}
+
+fn parse_pair(s: &str, what: &str) -> Result<(f32, f32), String> {
+    let parts: Vec<&str> = s.split(',').map(str::trim).collect();
+    match parts.as_slice() {
+        [a, b] => match (a.parse(), b.parse()) {
+            (Ok(a), Ok(b)) => Ok((a, b)),
+            _ => Err(format!("{what} `{s}`: expected two numbers A,B")),
+        },
+        _ => Err(format!("{what} `{s}`: expected two numbers A,B")),
+    }
+}
+
+fn parse_angle_range(s: &str) -> Result<AngleRange, String> {
+    let (a, b) = parse_pair(s, "angle range")?;
+    AngleRange::from_bounds(a, b)
+}
+
+fn parse_scale_range(s: &str) -> Result<ScaleRange, String> {
+    let (a, b) = parse_pair(s, "scale range")?;
+    ScaleRange::new(a, b)
+}
+
+impl MatchArgs {
+    fn options(&self) -> Result<MatchOptions, CliError> {
+        let options = MatchOptions {
+            max_instances: self.max_instances,
+            min_score: self.min_score,
+            max_overlap: self.max_overlap,
+            angle_range: self.angle_range,
+            scale_range: self.scale_range,
+            refine: !self.no_refine,
+        };
+        options.validate().map_err(CliError::Usage)?;
+        Ok(options)
+    }
+}
+
+pub fn run(args: MatchArgs) -> Result<(), CliError> {
+    let options = args.options()?;
+    // Read inputs before loading the model so that bad files fail fast.
+    if let (Some(pairs), Some(out)) = (&args.pairs, &args.out) {
+        let matcher = load_model(&args.model)?;
+        return run_pairs(&matcher, pairs, out, &options);
+    }
+    let (Some(template_path), Some(image_path)) = (&args.template, &args.image) else {
+        return Err(CliError::Usage(
+            "give --template and --image, or --pairs and --out".into(),
+        ));
+    };
+    let template = read_image(template_path)?;
+    let image = read_image(image_path)?;
+    let matcher = load_model(&args.model)?;
+    let start = Instant::now();
+    let encoded = matcher.encode_template(&template)?;
+    let outcome = matcher.match_one(&encoded, &image, &options)?;
+    let ms = start.elapsed().as_secs_f64() * 1e3;
+    if let Some(overlay) = &args.overlay {
+        super::overlay::save_overlay(&image, &outcome.poses, &encoded, overlay)?;
+    }
+    let answer = json!({
+        "template": template_path,
+        "image": image_path,
+        "image_width": image.width,
+        "image_height": image.height,
+        "poses": outcome.poses,
+        "ms": round3(ms),
+    });
+    println!(
+        "{}",
+        serde_json::to_string_pretty(&answer).expect("JSON of plain values")
+    );
+    Ok(())
+}
+
+fn round3(v: f64) -> f64 {
+    (v * 1000.0).round() / 1000.0
+}
+
+/// Batch mode. A bad line gets an `"error"` for its id and the batch goes on; templates are
+/// encoded once per path.
+fn run_pairs(
+    matcher: &Matcher,
+    pairs: &Path,
+    out: &Path,
+    options: &MatchOptions,
+) -> Result<(), CliError> {
+    let input = File::open(pairs).map_err(|e| CliError::io(pairs, e))?;
+    let base = pairs.parent().unwrap_or(Path::new(".")).to_owned();
+    let output = File::create(out).map_err(|e| CliError::io(out, e))?;
+    let mut output = BufWriter::new(output);
+    let mut templates: HashMap<PathBuf, EncodedTemplate> = HashMap::new();
+    let (mut ok, mut failed) = (0usize, 0usize);
+    for (number, line) in BufReader::new(input).lines().enumerate() {
+        let line = line.map_err(|e| CliError::io(pairs, e))?;
+        if line.trim().is_empty() {
+            continue;
+        }
+        let start = Instant::now();
+        let (id, result) = match_line(matcher, &line, &base, options, &mut templates);
+        let record = match result {
+            Ok(poses) => {
+                ok += 1;
+                json!({"id": id, "poses": poses, "ms": round3(start.elapsed().as_secs_f64() * 1e3)})
+            }
+            Err(message) => {
+                failed += 1;
+                json!({"id": id, "error": format!("line {}: {message}", number + 1)})
+            }
+        };
+        writeln!(output, "{record}").map_err(|e| CliError::io(out, e))?;
+    }
+    output.flush().map_err(|e| CliError::io(out, e))?;
+    eprintln!("{ok} pairs matched, {failed} failed; results in {}", out.display());
+    Ok(())
+}
+
+fn match_line(
+    matcher: &Matcher,
+    line: &str,
+    base: &Path,
+    options: &MatchOptions,
+    templates: &mut HashMap<PathBuf, EncodedTemplate>,
+) -> (Value, Result<Vec<crate::geometry::Pose>, String>) {
+    let record: Value = match serde_json::from_str(line) {
+        Ok(v) => v,
+        Err(e) => return (Value::Null, Err(format!("not valid JSON: {e}"))),
+    };
+    let id = record.get("id").cloned().unwrap_or(Value::Null);
+    let path = |key: &str| -> Result<PathBuf, String> {
+        record
+            .get(key)
+            .and_then(Value::as_str)
+            .map(|p| base.join(p))
+            .ok_or_else(|| format!("missing string field `{key}`"))
+    };
+    let result = (|| {
+        let template_path = path("template")?;
+        let image_path = path("image")?;
+        let mut options = options.clone();
+        if let Some(n) = record.get("max_instances") {
+            options.max_instances = n
+                .as_u64()
+                .ok_or("`max_instances` must be a positive integer")?
+                as usize;
+            options.validate()?;
+        }
+        if !templates.contains_key(&template_path) {
+            let template = read_image(&template_path).map_err(|e| e.to_string())?;
+            let encoded = matcher
+                .encode_template(&template)
+                .map_err(|e| format!("{}: {e}", template_path.display()))?;
+            templates.insert(template_path.clone(), encoded);
+        }
+        let image = read_image(&image_path).map_err(|e| e.to_string())?;
+        let outcome = matcher
+            .match_one(&templates[&template_path], &image, &options)
+            .map_err(|e| e.to_string())?;
+        Ok(outcome.poses)
+    })();
+    (id, result)
+}

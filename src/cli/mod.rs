@@ -1,0 +1,148 @@
+//! The `posematch` command line: flag parsing and file handling around [`crate::matcher`].
+//! Thin on purpose; every rule about images and poses lives below this layer.
+
+mod match_cmd;
+mod overlay;
+
+use std::path::{Path, PathBuf};
+
+use clap::{Args, Parser, Subcommand};
+
+use crate::imaging::{DecodeError, ImageLimits, InputConvention, decode_image_file};
+use crate::matcher::{MatchError, Matcher};
+use crate::model::{DeviceError, LoadError, Tdcm, load_weights, save_weights, select_device};
+
+pub use match_cmd::MatchArgs;
+
+#[derive(Parser, Debug)]
+#[command(
+    name = "posematch",
+    version,
+    about = "Find a template in images and report every instance's pose (x, y, angle, scale_x, scale_y)"
+)]
+pub struct Cli {
+    #[command(subcommand)]
+    pub command: Command,
+}
+
+#[derive(Subcommand, Debug)]
+pub enum Command {
+    /// Match a template in an image (or a JSONL list of pairs) and print the poses as JSON.
+    Match(MatchArgs),
+    /// Manage network weights.
+    #[command(subcommand)]
+    Weights(WeightsCommand),
+}
+
+#[derive(Subcommand, Debug)]
+pub enum WeightsCommand {
+    /// Convert a PyTorch checkpoint of the official model (.pth or .safetensors) into
+    /// PoseMatch's own format (.bpk), checking it against the architecture.
+    Import {
+        #[arg(long = "from")]
+        from: PathBuf,
+        #[arg(long)]
+        out: PathBuf,
+    },
+}
+
+/// Model flags shared by every subcommand that runs the network.
+#[derive(Args, Debug, Clone)]
+pub struct ModelArgs {
+    /// Weights file: .bpk (PoseMatch), .pth/.pt or .safetensors (official PyTorch checkpoint).
+    #[arg(long)]
+    pub weights: Option<PathBuf>,
+    /// Input convention: `imagenet` (RGB, ImageNet mean/std; how the official checkpoint was
+    /// trained) or `gray` (the authors' test.py demo).
+    #[arg(long, default_value = "imagenet", value_parser = parse_convention)]
+    pub convention: InputConvention,
+}
+
+fn parse_convention(s: &str) -> Result<InputConvention, String> {
+    match s {
+        "imagenet" => Ok(InputConvention::ImagenetRgb),
+        "gray" | "grey" => Ok(InputConvention::Gray),
+        _ => Err(format!("unknown convention `{s}`: use `imagenet` or `gray`")),
+    }
+}
+
+/// Everything that ends a command with a non-zero exit; the message says what to fix.
+#[derive(Debug, thiserror::Error)]
+pub enum CliError {
+    #[error(transparent)]
+    Decode(#[from] DecodeError),
+    #[error(transparent)]
+    Match(#[from] MatchError),
+    #[error(transparent)]
+    Weights(#[from] LoadError),
+    #[error(transparent)]
+    Device(#[from] DeviceError),
+    #[error("{path}: {source}")]
+    Io {
+        path: PathBuf,
+        #[source]
+        source: std::io::Error,
+    },
+    #[error("{0}")]
+    Usage(String),
+}
+
+impl CliError {
+    pub fn io(path: &Path, source: std::io::Error) -> Self {
+        Self::Io {
+            path: path.to_owned(),
+            source,
+        }
+    }
+
+    /// Exit status: 2 for wrong usage, 1 for everything else.
+    pub fn exit_code(&self) -> i32 {
+        match self {
+            Self::Usage(_) => 2,
+            _ => 1,
+        }
+    }
+}
+
+/// The default weights embedded in this binary, if the build has any.
+pub fn default_weights() -> Option<&'static [u8]> {
+    None
+}
+
+/// Loads the network from `--weights` or the embedded default.
+pub fn load_model(args: &ModelArgs) -> Result<Matcher, CliError> {
+    let device = select_device()?;
+    let model: Tdcm = match (&args.weights, default_weights()) {
+        (Some(path), _) => load_weights(path, &device)?,
+        (None, Some(bytes)) => {
+            crate::model::load_weights_from_bytes(bytes, "embedded default weights", &device)?
+        }
+        (None, None) => {
+            return Err(CliError::Usage(
+                "no --weights given and this build has no default weights; pass --weights FILE \
+                 (.bpk, or the official .pth/.safetensors checkpoint)"
+                    .into(),
+            ));
+        }
+    };
+    Ok(Matcher::new(model, device, args.convention))
+}
+
+/// Runs one parsed command line.
+pub fn run(cli: Cli) -> Result<(), CliError> {
+    match cli.command {
+        Command::Match(args) => match_cmd::run(args),
+        Command::Weights(WeightsCommand::Import { from, out }) => {
+            let device = select_device()?;
+            let model = load_weights(&from, &device)?;
+            save_weights(&model, &out)?;
+            eprintln!("wrote {}", out.display());
+            Ok(())
+        }
+    }
+}
+
+/// Decodes an image file with the default limits.
+pub(crate) fn read_image(path: &Path) -> Result<crate::imaging::RgbImage32, CliError> {
+    Ok(decode_image_file(path, ImageLimits::default())?)
+}

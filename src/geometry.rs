@@ -1,0 +1,177 @@
+//! The public pose convention and the rotated-box maths built on it.
+//!
+//! A template pixel offset `(u, v)` from the template centre (u right, v down) maps to the image
+//! point `(x + sx·u·cos a + sy·v·sin a, y − sx·u·sin a + sy·v·cos a)`. Positive `a` turns
+//! counter-clockwise on screen, range (−180°, 180°]. `scale_x` = object width in the image /
+//! registered template width. The centre of the top-left pixel is (0, 0).
+
+use serde::{Deserialize, Serialize};
+
+/// One found instance.
+#[derive(Debug, Clone, Copy, PartialEq, Serialize, Deserialize)]
+pub struct Pose {
+    pub x: f32,
+    pub y: f32,
+    pub angle_deg: f32,
+    pub scale_x: f32,
+    pub scale_y: f32,
+    pub score: f32,
+}
+
+impl Pose {
+    /// Image position of template offset `(u, v)` (template pixels from its centre).
+    pub fn map_point(&self, u: f32, v: f32) -> (f32, f32) {
+        let (s, c) = self.angle_deg.to_radians().sin_cos();
+        (
+            self.x + self.scale_x * u * c + self.scale_y * v * s,
+            self.y - self.scale_x * u * s + self.scale_y * v * c,
+        )
+    }
+
+    /// The four image corners of a `template_width x template_height` template placed at this
+    /// pose: top-left, top-right, bottom-right, bottom-left (in template orientation).
+    pub fn corners(&self, template_width: f32, template_height: f32) -> [(f32, f32); 4] {
+        let (hw, hh) = (template_width / 2.0, template_height / 2.0);
+        [
+            self.map_point(-hw, -hh),
+            self.map_point(hw, -hh),
+            self.map_point(hw, hh),
+            self.map_point(-hw, hh),
+        ]
+    }
+}
+
+/// Wraps any angle in degrees into (−180, 180].
+pub fn wrap_angle_deg(angle: f32) -> f32 {
+    let mut a = angle % 360.0;
+    if a <= -180.0 {
+        a += 360.0;
+    } else if a > 180.0 {
+        a -= 360.0;
+    }
+    a
+}
+
+/// Smallest absolute difference between two angles, in [0, 180].
+pub fn angle_distance_deg(a: f32, b: f32) -> f32 {
+    wrap_angle_deg(a - b).abs()
+}
+
+/// Area of a simple polygon (shoelace), positive for either orientation.
+pub fn polygon_area(points: &[(f32, f32)]) -> f32 {
+    let n = points.len();
+    let twice: f32 = (0..n)
+        .map(|i| {
+            let (x0, y0) = points[i];
+            let (x1, y1) = points[(i + 1) % n];
+            x0 * y1 - x1 * y0
+        })
+        .sum();
+    twice.abs() / 2.0
+}
+
+/// Intersection of two convex polygons (Sutherland–Hodgman).
+pub fn convex_intersection(subject: &[(f32, f32)], clip: &[(f32, f32)]) -> Vec<(f32, f32)> {
+    // Orient the clip polygon counter-clockwise in maths coordinates so "inside" is to the left.
+    let signed: f32 = (0..clip.len())
+        .map(|i| {
+            let (x0, y0) = clip[i];
+            let (x1, y1) = clip[(i + 1) % clip.len()];
+            x0 * y1 - x1 * y0
+        })
+        .sum();
+    let mut clip = clip.to_vec();
+    if signed < 0.0 {
+        clip.reverse();
+    }
+    let mut output = subject.to_vec();
+    for i in 0..clip.len() {
+        if output.is_empty() {
+            break;
+        }
+        let a = clip[i];
+        let b = clip[(i + 1) % clip.len()];
+        let side = |p: (f32, f32)| (b.0 - a.0) * (p.1 - a.1) - (b.1 - a.1) * (p.0 - a.0);
+        let input = std::mem::take(&mut output);
+        for j in 0..input.len() {
+            let p = input[j];
+            let q = input[(j + 1) % input.len()];
+            let (sp, sq) = (side(p), side(q));
+            if sp >= 0.0 {
+                output.push(p);
+            }
+            if (sp >= 0.0) != (sq >= 0.0) {
+                let t = sp / (sp - sq);
+                output.push((p.0 + t * (q.0 - p.0), p.1 + t * (q.1 - p.1)));
+            }
+        }
+    }
+    output
+}
+
+/// Intersection over union of two convex quadrilaterals (rotated boxes).
+pub fn rotated_iou(a: &[(f32, f32); 4], b: &[(f32, f32); 4]) -> f32 {
+    let area_a = polygon_area(a);
+    let area_b = polygon_area(b);
+    if area_a <= 0.0 || area_b <= 0.0 {
+        return 0.0;
+    }
+    let inter = polygon_area(&convex_intersection(a, b));
+    let union = area_a + area_b - inter;
+    if union <= 0.0 { 0.0 } else { inter / union }
+}
+
+#[cfg(test)]
+mod tests {
+    use super::*;
+
+    fn pose(x: f32, y: f32, angle_deg: f32, scale_x: f32, scale_y: f32) -> Pose {
+        Pose {
+            x,
+            y,
+            angle_deg,
+            scale_x,
+            scale_y,
+            score: 1.0,
+        }
+    }
+
+    #[test]
+    fn positive_angle_turns_counter_clockwise_on_screen() {
+        // The template's "right" (u = 1) must point up on screen (y decreases) at +90°.
+        let (x, y) = pose(10.0, 10.0, 90.0, 1.0, 1.0).map_point(1.0, 0.0);
+        assert!((x - 10.0).abs() < 1e-5 && (y - 9.0).abs() < 1e-5, "{x} {y}");
+    }
+
+    #[test]
+    fn scales_apply_along_template_axes() {
+        let (x, y) = pose(0.0, 0.0, 0.0, 2.0, 3.0).map_point(1.0, 1.0);
+        assert_eq!((x, y), (2.0, 3.0));
+    }
+
+    #[test]
+    fn wrap_covers_both_ends() {
+        assert_eq!(wrap_angle_deg(180.0), 180.0);
+        assert_eq!(wrap_angle_deg(-180.0), 180.0);
+        assert_eq!(wrap_angle_deg(190.0), -170.0);
+        assert_eq!(wrap_angle_deg(-190.0), 170.0);
+        assert_eq!(wrap_angle_deg(720.0 + 45.0), 45.0);
+        assert!((angle_distance_deg(179.0, -179.0) - 2.0).abs() < 1e-4);
+    }
+
+    #[test]
+    fn iou_of_hand_computed_boxes() {
+        // Two axis-aligned 2x2 squares shifted by 1: intersection 2, union 6.
+        let a = pose(0.0, 0.0, 0.0, 1.0, 1.0).corners(2.0, 2.0);
+        let b = pose(1.0, 0.0, 0.0, 1.0, 1.0).corners(2.0, 2.0);
+        assert!((rotated_iou(&a, &b) - 2.0 / 6.0).abs() < 1e-5);
+        // A 2x2 square and itself turned by 45°: the octagon has area 8(√2 − 1).
+        let c = pose(0.0, 0.0, 45.0, 1.0, 1.0).corners(2.0, 2.0);
+        let inter = 8.0 * (2f32.sqrt() - 1.0);
+        let expected = inter / (8.0 - inter);
+        assert!((rotated_iou(&a, &c) - expected).abs() < 1e-4);
+        // Disjoint.
+        let d = pose(10.0, 0.0, 30.0, 1.0, 1.0).corners(2.0, 2.0);
+        assert_eq!(rotated_iou(&a, &d), 0.0);
+    }
+}

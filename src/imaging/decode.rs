@@ -1,0 +1,172 @@
+//! Decoding any format the `image` crate reads (PNG, JPEG, BMP, TIFF, PNM; 8/16-bit grey, RGB,
+//! RGBA) into one float RGB representation. A hostile header cannot make us allocate: the size is
+//! read first and checked against [`ImageLimits`].
+
+use std::io::Cursor;
+use std::path::Path;
+
+use image::{ImageReader, Limits};
+
+/// Bounds on what we agree to decode.
+#[derive(Debug, Clone, Copy)]
+pub struct ImageLimits {
+    /// Largest accepted `width * height`.
+    pub max_pixels: u64,
+    /// Smallest accepted side.
+    pub min_side: u32,
+}
+
+impl Default for ImageLimits {
+    fn default() -> Self {
+        // 40 megapixels: the largest industrial frames we promise to handle.
+        Self {
+            max_pixels: 40_000_000,
+            min_side: 1,
+        }
+    }
+}
+
+#[derive(Debug, thiserror::Error)]
+pub enum DecodeError {
+    #[error("{what}: the image data is empty")]
+    Empty { what: String },
+    #[error("{what}: cannot read the file: {source}")]
+    Io {
+        what: String,
+        #[source]
+        source: std::io::Error,
+    },
+    #[error(
+        "{what}: not a supported image (PNG, JPEG, BMP, TIFF, PNM expected): {message}"
+    )]
+    Unsupported { what: String, message: String },
+    #[error(
+        "{what}: the header says {width}x{height} = {pixels} pixels, above the limit of {limit}; crop or downscale the image"
+    )]
+    TooLarge {
+        what: String,
+        width: u32,
+        height: u32,
+        pixels: u64,
+        limit: u64,
+    },
+    #[error("{what}: {width}x{height} is too small; each side must be at least {min_side} pixels")]
+    TooSmall {
+        what: String,
+        width: u32,
+        height: u32,
+        min_side: u32,
+    },
+    #[error("{what}: the image is corrupt or truncated: {message}")]
+    Corrupt { what: String, message: String },
+}
+
+/// An RGB image as interleaved `f32` values in [0, 1].
+#[derive(Debug, Clone)]
+pub struct RgbImage32 {
+    pub width: u32,
+    pub height: u32,
+    /// `height * width * 3`, row-major, RGB interleaved.
+    pub pixels: Vec<f32>,
+}
+
+impl RgbImage32 {
+    pub fn new(width: u32, height: u32, pixels: Vec<f32>) -> Self {
+        assert_eq!(pixels.len(), width as usize * height as usize * 3);
+        Self {
+            width,
+            height,
+            pixels,
+        }
+    }
+
+    /// From an already decoded `image` buffer (any colour type).
+    pub fn from_dynamic(image: &image::DynamicImage) -> Self {
+        let rgb = image.to_rgb32f();
+        Self::new(rgb.width(), rgb.height(), rgb.into_raw())
+    }
+
+    /// Luma (BT.601) of every pixel, in [0, 1].
+    pub fn to_gray(&self) -> Vec<f32> {
+        self.pixels
+            .chunks_exact(3)
+            .map(|p| 0.299 * p[0] + 0.587 * p[1] + 0.114 * p[2])
+            .collect()
+    }
+
+    /// A copy of the `w x h` window at `(x0, y0)`; the window must lie inside.
+    pub fn crop(&self, x0: u32, y0: u32, w: u32, h: u32) -> Self {
+        assert!(x0 + w <= self.width && y0 + h <= self.height);
+        let mut pixels = Vec::with_capacity(w as usize * h as usize * 3);
+        for y in y0..y0 + h {
+            let start = (y as usize * self.width as usize + x0 as usize) * 3;
+            pixels.extend_from_slice(&self.pixels[start..start + w as usize * 3]);
+        }
+        Self::new(w, h, pixels)
+    }
+}
+
+/// Reads and decodes an image file. `what` names it in errors ("template", "image", a path).
+pub fn decode_image_file(path: &Path, limits: ImageLimits) -> Result<RgbImage32, DecodeError> {
+    let what = path.display().to_string();
+    let bytes = std::fs::read(path).map_err(|source| DecodeError::Io {
+        what: what.clone(),
+        source,
+    })?;
+    decode_image(&bytes, &what, limits)
+}
+
+/// Decodes encoded bytes, checking the header's size against `limits` before decoding.
+pub fn decode_image(bytes: &[u8], what: &str, limits: ImageLimits) -> Result<RgbImage32, DecodeError> {
+    let what = what.to_owned();
+    if bytes.is_empty() {
+        return Err(DecodeError::Empty { what });
+    }
+    let unsupported = |message: String| DecodeError::Unsupported {
+        what: what.clone(),
+        message,
+    };
+    let reader = || {
+        ImageReader::new(Cursor::new(bytes))
+            .with_guessed_format()
+            .map_err(|e| unsupported(e.to_string()))
+    };
+    let probe = reader()?;
+    if probe.format().is_none() {
+        return Err(unsupported("unrecognised file signature".into()));
+    }
+    let (width, height) = probe.into_dimensions().map_err(|e| DecodeError::Corrupt {
+        what: what.clone(),
+        message: e.to_string(),
+    })?;
+    let pixels = width as u64 * height as u64;
+    if pixels > limits.max_pixels {
+        return Err(DecodeError::TooLarge {
+            what,
+            width,
+            height,
+            pixels,
+            limit: limits.max_pixels,
+        });
+    }
+    if width < limits.min_side || height < limits.min_side {
+        return Err(DecodeError::TooSmall {
+            what,
+            width,
+            height,
+            min_side: limits.min_side,
+        });
+    }
+    let mut reader = reader()?;
+    let mut decode_limits = Limits::default();
+    decode_limits.max_image_width = Some(width);
+    decode_limits.max_image_height = Some(height);
+    // Room for a 16-bit RGBA decode of the announced size, and no more.
+    decode_limits.max_alloc = Some(pixels * 8 + (1 << 20));
+    reader.limits(decode_limits);
+    let image = reader.decode().map_err(|e| DecodeError::Corrupt {
+        what: what.clone(),
+        message: e.to_string(),
+    })?;
+    Ok(RgbImage32::from_dynamic(&image))
+}

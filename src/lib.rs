@@ -1,0 +1,12 @@
+//! PoseMatch: find a registered template in camera images and return every instance's in-plane
+//! pose (centre, rotation, two scales, score), using the TDCM network.
+//!
+//! Layers, lowest first: [`model`] (burn network, weights), [`imaging`] (decode, normalise,
+//! resize), [`geometry`] (pose convention, rotated boxes), [`matcher`] (images in, poses out),
+//! and [`cli`] on top.
+
+pub mod cli;
+pub mod geometry;
+pub mod imaging;
+pub mod matcher;
+pub mod model;

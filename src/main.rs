@@ -1,0 +1,19 @@
+//! The `posematch` binary: parse flags, set up logging, run, and turn errors into one line and
+//! an exit status.
+
+use clap::Parser;
+
+fn main() {
+    tracing_subscriber::fmt()
+        .with_env_filter(
+            tracing_subscriber::EnvFilter::try_from_default_env()
+                .unwrap_or_else(|_| tracing_subscriber::EnvFilter::new("warn")),
+        )
+        .with_writer(std::io::stderr)
+        .init();
+    let cli = posematch::cli::Cli::parse();
+    if let Err(error) = posematch::cli::run(cli) {
+        eprintln!("error: {error}");
+        std::process::exit(error.exit_code());
+    }
+}

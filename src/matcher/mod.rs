@@ -1,0 +1,417 @@
+//! Images in, poses out: encodes templates into kernels, plans how each search image is shown to
+//! the network (see [`plan`]), runs the network on batches of same-sized pieces, decodes peaks
+//! (see [`decode`]) and maps them back into the public pose convention.
+
+pub mod decode;
+pub mod options;
+pub mod plan;
+
+use std::time::Instant;
+
+use burn::prelude::*;
+
+use crate::geometry::{Pose, rotated_iou};
+use crate::imaging::{InputConvention, RgbImage32, resize_rgb, to_network_input};
+use crate::model::{TEMPLATE_GRID, Tdcm};
+use decode::{MapPlanes, decode_peak, find_peaks};
+pub use options::{AngleRange, MatchOptions, ScaleRange};
+use plan::{MAX_NETWORK_PIXELS, MIN_INPUT_SIDE, ScalePass, Tile};
+
+/// Smallest template side we accept (the network sees it on a 36x36 grid; below this there is
+/// nothing to match).
+pub const MIN_TEMPLATE_SIDE: u32 = 8;
+/// Largest template side we accept.
+pub const MAX_TEMPLATE_SIDE: u32 = 512;
+/// Smallest search image side.
+pub const MIN_IMAGE_SIDE: u32 = 32;
+
+#[derive(Debug, thiserror::Error)]
+pub enum MatchError {
+    #[error(
+        "template is {width}x{height}; each side must be between {MIN_TEMPLATE_SIDE} and {MAX_TEMPLATE_SIDE} pixels"
+    )]
+    TemplateSize { width: u32, height: u32 },
+    #[error(
+        "search image is {width}x{height}; each side must be at least {MIN_IMAGE_SIDE} pixels"
+    )]
+    ImageTooSmall { width: u32, height: u32 },
+    #[error(
+        "template ({tw}x{th}) is larger than the search image ({iw}x{ih}); pass a larger image or register a smaller template"
+    )]
+    TemplateLargerThanImage { tw: u32, th: u32, iw: u32, ih: u32 },
+    #[error(
+        "matching a {tw}x{th} template in a {iw}x{ih} image at scales {lo}..{hi} needs a {pixels}-pixel network input (limit {MAX_NETWORK_PIXELS}); crop the image or narrow the scale range"
+    )]
+    TooMuchWork {
+        tw: u32,
+        th: u32,
+        iw: u32,
+        ih: u32,
+        lo: f32,
+        hi: f32,
+        pixels: u64,
+    },
+    #[error("invalid option: {0}")]
+    InvalidOption(String),
+}
+
+/// A template after encoding: what the service caches per template ID.
+#[derive(Debug, Clone)]
+pub struct EncodedTemplate {
+    /// Registered size, the reference for reported scales.
+    pub width: u32,
+    pub height: u32,
+    /// `[1, 96, k, k]` depthwise kernels.
+    pub kernel: Tensor<4>,
+}
+
+/// One search to run.
+pub struct MatchJob<'a> {
+    pub template: &'a EncodedTemplate,
+    pub image: &'a RgbImage32,
+    pub options: &'a MatchOptions,
+}
+
+/// Where the time of one job went.
+#[derive(Debug, Clone, Copy, Default, PartialEq)]
+pub struct MatchTimings {
+    pub prepare_ms: f64,
+    pub network_ms: f64,
+    pub decode_ms: f64,
+}
+
+/// The answer to one job.
+#[derive(Debug, Clone)]
+pub struct MatchOutcome {
+    pub poses: Vec<Pose>,
+    pub timings: MatchTimings,
+}
+
+/// The network and how to feed it. Not thread-safe by design: one owner (a CLI, the service's
+/// model thread) drives it.
+pub struct Matcher {
+    model: Tdcm,
+    device: Device,
+    convention: InputConvention,
+    /// Most network pieces in one forward pass.
+    max_batch: usize,
+}
+
+/// A network-input piece: one tile of one pass of one job.
+struct Piece {
+    job: usize,
+    pass: ScalePass,
+    tile: Tile,
+    input: RgbImage32,
+}
+
+impl Matcher {
+    pub fn new(model: Tdcm, device: Device, convention: InputConvention) -> Self {
+        Self {
+            model,
+            device,
+            convention,
+            max_batch: 4,
+        }
+    }
+
+    pub fn with_max_batch(mut self, max_batch: usize) -> Self {
+        self.max_batch = max_batch.max(1);
+        self
+    }
+
+    pub fn device(&self) -> &Device {
+        &self.device
+    }
+
+    pub fn model(&self) -> &Tdcm {
+        &self.model
+    }
+
+    /// Resizes a template to the network grid and encodes it into its kernels.
+    pub fn encode_template(&self, template: &RgbImage32) -> Result<EncodedTemplate, MatchError> {
+        check_template_size(template.width, template.height)?;
+        let grid = resize_rgb(template, TEMPLATE_GRID as u32, TEMPLATE_GRID as u32);
+        let input = to_network_input(&[&grid], self.convention, &self.device);
+        let kernel = self.model.template_encoder.forward(input);
+        Ok(EncodedTemplate {
+            width: template.width,
+            height: template.height,
+            kernel,
+        })
+    }
+
+    /// Matches one template in one image.
+    pub fn match_one(
+        &self,
+        template: &EncodedTemplate,
+        image: &RgbImage32,
+        options: &MatchOptions,
+    ) -> Result<MatchOutcome, MatchError> {
+        self.match_many(&[MatchJob {
+            template,
+            image,
+            options,
+        }])
+        .pop()
+        .expect("one job in, one answer out")
+    }
+
+    /// Matches several independent jobs, batching same-sized network pieces together.
+    pub fn match_many(&self, jobs: &[MatchJob]) -> Vec<Result<MatchOutcome, MatchError>> {
+        let start = Instant::now();
+        let mut results: Vec<Result<MatchOutcome, MatchError>> = Vec::with_capacity(jobs.len());
+        let mut pieces = Vec::new();
+        for (index, job) in jobs.iter().enumerate() {
+            match prepare(index, job) {
+                Ok(job_pieces) => {
+                    pieces.extend(job_pieces);
+                    results.push(Ok(MatchOutcome {
+                        poses: Vec::new(),
+                        timings: MatchTimings::default(),
+                    }));
+                }
+                Err(e) => results.push(Err(e)),
+            }
+        }
+        let prepare_ms = ms_since(start);
+        // Candidate poses per job, in original image coordinates.
+        let mut candidates: Vec<Vec<Pose>> = vec![Vec::new(); jobs.len()];
+        let (mut network_ms, mut decode_ms) = (0.0, 0.0);
+        // Same-sized pieces share a forward pass.
+        pieces.sort_by_key(|p| (p.input.width, p.input.height));
+        for group in pieces.chunk_by(|a, b| {
+            (a.input.width, a.input.height) == (b.input.width, b.input.height)
+        }) {
+            for batch in group.chunks(self.max_batch) {
+                let t = Instant::now();
+                let planes = self.run_network(jobs, batch);
+                network_ms += ms_since(t);
+                let t = Instant::now();
+                for (piece, maps) in batch.iter().zip(&planes) {
+                    let job = &jobs[piece.job];
+                    candidates[piece.job].extend(decode_piece(piece, maps, job));
+                }
+                decode_ms += ms_since(t);
+            }
+        }
+        let t = Instant::now();
+        for (index, result) in results.iter_mut().enumerate() {
+            if let Ok(outcome) = result {
+                let job = &jobs[index];
+                outcome.poses = select(
+                    std::mem::take(&mut candidates[index]),
+                    job.options,
+                    job.template.width as f32,
+                    job.template.height as f32,
+                );
+            }
+        }
+        decode_ms += ms_since(t);
+        let count = results.iter().filter(|r| r.is_ok()).count().max(1) as f64;
+        for outcome in results.iter_mut().flatten() {
+            outcome.timings = MatchTimings {
+                prepare_ms: prepare_ms / count,
+                network_ms: network_ms / count,
+                decode_ms: decode_ms / count,
+            };
+        }
+        results
+    }
+
+    /// One forward pass over same-sized pieces; returns the five planes of each, concatenated
+    /// as `[score, sign, cos, scale_x, scale_y]`.
+    fn run_network(&self, jobs: &[MatchJob], batch: &[Piece]) -> Vec<Vec<f32>> {
+        let inputs: Vec<&RgbImage32> = batch.iter().map(|p| &p.input).collect();
+        let images = to_network_input(&inputs, self.convention, &self.device);
+        let kernels = Tensor::cat(
+            batch
+                .iter()
+                .map(|p| jobs[p.job].template.kernel.clone())
+                .collect(),
+            0,
+        );
+        let maps = self.model.search_matcher.forward(images, kernels);
+        let stacked = Tensor::cat(
+            vec![maps.score, maps.sign, maps.cos, maps.scale_x, maps.scale_y],
+            1,
+        ); // [b, 5, H, W]
+        let [b, _, h, w] = stacked.dims();
+        let values: Vec<f32> = stacked
+            .into_data()
+            .try_to_vec::<f32>()
+            .expect("network output is f32; this is a bug");
+        values
+            .chunks_exact(5 * h * w)
+            .take(b)
+            .map(<[f32]>::to_vec)
+            .collect()
+    }
+}
+
+fn ms_since(t: Instant) -> f64 {
+    t.elapsed().as_secs_f64() * 1e3
+}
+
+fn check_template_size(width: u32, height: u32) -> Result<(), MatchError> {
+    let ok = |s: u32| (MIN_TEMPLATE_SIDE..=MAX_TEMPLATE_SIDE).contains(&s);
+    if ok(width) && ok(height) {
+        Ok(())
+    } else {
+        Err(MatchError::TemplateSize { width, height })
+    }
+}
+
+/// Validates a job and cuts it into network pieces.
+fn prepare(index: usize, job: &MatchJob) -> Result<Vec<Piece>, MatchError> {
+    job.options.validate().map_err(MatchError::InvalidOption)?;
+    let (tw, th) = (job.template.width, job.template.height);
+    let (iw, ih) = (job.image.width, job.image.height);
+    check_template_size(tw, th)?;
+    if iw < MIN_IMAGE_SIDE || ih < MIN_IMAGE_SIDE {
+        return Err(MatchError::ImageTooSmall {
+            width: iw,
+            height: ih,
+        });
+    }
+    if tw > iw || th > ih {
+        return Err(MatchError::TemplateLargerThanImage { tw, th, iw, ih });
+    }
+    let (lo, hi) = job
+        .options
+        .scale_range
+        .map_or((1.0, 1.0), |r| (r.min, r.max));
+    let passes: Vec<ScalePass> = plan::split_scale_range(lo, hi)
+        .into_iter()
+        .map(|(a, b)| {
+            let f = plan::scale_factor(TEMPLATE_GRID, tw, th, a, b);
+            plan::scale_pass(iw, ih, f)
+        })
+        .collect();
+    let pixels: u64 = passes
+        .iter()
+        .map(|p| p.width as u64 * p.height as u64)
+        .sum();
+    if pixels > MAX_NETWORK_PIXELS {
+        return Err(MatchError::TooMuchWork {
+            tw,
+            th,
+            iw,
+            ih,
+            lo,
+            hi,
+            pixels,
+        });
+    }
+    let mut pieces = Vec::new();
+    for pass in passes {
+        let resized = resize_rgb(job.image, pass.width as u32, pass.height as u32);
+        let padded = pad_to_min_side(resized, MIN_INPUT_SIDE);
+        for tile in plan::tiles(padded.width as usize, padded.height as usize) {
+            let input = if tile.width == padded.width as usize && tile.height == padded.height as usize
+            {
+                padded.clone()
+            } else {
+                padded.crop(
+                    tile.x0 as u32,
+                    tile.y0 as u32,
+                    tile.width as u32,
+                    tile.height as u32,
+                )
+            };
+            pieces.push(Piece {
+                job: index,
+                pass,
+                tile,
+                input,
+            });
+        }
+    }
+    Ok(pieces)
+}
+
+/// Replicates the last row/column until both sides are at least `min_side`.
+fn pad_to_min_side(image: RgbImage32, min_side: usize) -> RgbImage32 {
+    let (w, h) = (image.width as usize, image.height as usize);
+    let (nw, nh) = (w.max(min_side), h.max(min_side));
+    if (nw, nh) == (w, h) {
+        return image;
+    }
+    let mut pixels = Vec::with_capacity(nw * nh * 3);
+    for y in 0..nh {
+        let row = &image.pixels[y.min(h - 1) * w * 3..(y.min(h - 1) + 1) * w * 3];
+        pixels.extend_from_slice(row);
+        let last = &row[(w - 1) * 3..];
+        for _ in w..nw {
+            pixels.extend_from_slice(last);
+        }
+    }
+    RgbImage32::new(nw as u32, nh as u32, pixels)
+}
+
+/// Peaks of one piece that it owns, as poses in the original image.
+fn decode_piece(piece: &Piece, maps: &[f32], job: &MatchJob) -> Vec<Pose> {
+    // The network output is 4*floor(side/4).
+    let w = piece.input.width as usize / 4 * 4;
+    let h = piece.input.height as usize / 4 * 4;
+    let n = w * h;
+    let planes = MapPlanes {
+        width: w,
+        height: h,
+        score: &maps[..n],
+        sign: &maps[n..2 * n],
+        cos: &maps[2 * n..3 * n],
+        scale_x: &maps[3 * n..4 * n],
+        scale_y: &maps[4 * n..5 * n],
+    };
+    let limit = 4 * job.options.max_instances + 16;
+    let pass = piece.pass;
+    let tile = piece.tile;
+    let grid = TEMPLATE_GRID as f32;
+    find_peaks(&planes, job.options.min_score, limit)
+        .into_iter()
+        .filter_map(|(row, col)| {
+            let (gx, gy) = (tile.x0 + col, tile.y0 + row);
+            let owned = (tile.core_x.0..tile.core_x.1).contains(&gx)
+                && (tile.core_y.0..tile.core_y.1).contains(&gy)
+                && gx < pass.width
+                && gy < pass.height;
+            owned.then(|| {
+                let p = decode_peak(&planes, row, col);
+                Pose {
+                    x: (tile.x0 as f32 + p.x + 0.5) / pass.factor_x - 0.5,
+                    y: (tile.y0 as f32 + p.y + 0.5) / pass.factor_y - 0.5,
+                    angle_deg: p.angle_deg,
+                    scale_x: p.scale_x * grid / (pass.factor_x * job.template.width as f32),
+                    scale_y: p.scale_y * grid / (pass.factor_y * job.template.height as f32),
+                    score: p.score,
+                }
+            })
+        })
+        .collect()
+}
+
+/// Range filters, rotated-box non-maximum suppression, best first, at most `max_instances`.
+fn select(mut candidates: Vec<Pose>, options: &MatchOptions, tw: f32, th: f32) -> Vec<Pose> {
+    candidates.retain(|p| {
+        options.angle_range.is_none_or(|r| r.contains(p.angle_deg))
+            && options
+                .scale_range
+                .is_none_or(|r| r.contains(p.scale_x) && r.contains(p.scale_y))
+    });
+    candidates.sort_by(|a, b| b.score.total_cmp(&a.score));
+    let mut kept: Vec<(Pose, [(f32, f32); 4])> = Vec::new();
+    for pose in candidates {
+        if kept.len() == options.max_instances {
+            break;
+        }
+        let corners = pose.corners(tw, th);
+        if kept
+            .iter()
+            .all(|(_, other)| rotated_iou(&corners, other) <= options.max_overlap)
+        {
+            kept.push((pose, corners));
+        }
+    }
+    kept.into_iter().map(|(p, _)| p).collect()
+}

@@ -1,0 +1,170 @@
+//! How a search image is presented to the network: the rescale factor that puts the expected
+//! objects at the scale the network was trained for, and the tiles that keep memory bounded.
+//!
+//! # Scale normalisation
+//! The template is resized (anisotropically) to the 36x36 network grid, as in training. The
+//! search image is resized *isotropically* by `f = 36 / sqrt(tw·th) / sqrt(lo·hi)`, so that an
+//! object at the geometric middle of the requested scale range `[lo, hi]` (default: 1) appears
+//! with the template's area on the 36-pixel grid, where the scale heads (0.5–2.0) are centred.
+//! Isotropic, because an anisotropic resize would shear rotated objects. Poses are mapped back
+//! with the exact per-axis factors actually used (`W'/W`, `H'/H`), and scales are reported
+//! relative to the registered template size. A requested range wider than the heads can express
+//! in one pass (ratio > 3) is split into several passes at different `f`.
+//!
+//! # Tiling
+//! Up to [`MAX_WHOLE_PIXELS`] network pixels run as one piece. Larger inputs run as
+//! [`TILE`]-sized tiles that overlap by `2 x` [`TILE_MARGIN`]; each tile owns only the peaks in
+//! its core, so every object centre is decoded in a tile that holds the whole object (an object
+//! at the top of the scale range spans at most 2·36·√2 ≈ 102 px, so a 64 px margin covers half of
+//! it). GRN normalises over the whole feature map, so tiles see slightly different features than
+//! one full pass would; `tests/matching.rs` measures what that costs.
+
+/// Network input side of a tile (a multiple of 4).
+pub const TILE: usize = 512;
+/// Overlap on each side of a tile's core.
+pub const TILE_MARGIN: usize = 64;
+/// Inputs up to this many network pixels run whole (about 768x768).
+pub const MAX_WHOLE_PIXELS: usize = 600_000;
+/// Refuse a search that would need more network pixels than this (a tiny template on a huge
+/// frame): minutes of CPU that nobody asked for.
+pub const MAX_NETWORK_PIXELS: u64 = 64_000_000;
+/// Smallest network input side; smaller inputs are padded by edge replication.
+pub const MIN_INPUT_SIDE: usize = 40;
+/// Largest ratio `hi / lo` one pass covers.
+const MAX_PASS_RATIO: f32 = 3.0;
+
+/// One rescaling of the search image.
+#[derive(Debug, Clone, Copy, PartialEq)]
+pub struct ScalePass {
+    /// Network input size before padding.
+    pub width: usize,
+    pub height: usize,
+    /// Exact factors `width / W`, `height / H`.
+    pub factor_x: f32,
+    pub factor_y: f32,
+}
+
+/// A window of a pass's network input and the part of it whose peaks it owns.
+#[derive(Debug, Clone, Copy, PartialEq, Eq)]
+pub struct Tile {
+    pub x0: usize,
+    pub y0: usize,
+    pub width: usize,
+    pub height: usize,
+    /// Owned core, in pass coordinates, half-open.
+    pub core_x: (usize, usize),
+    pub core_y: (usize, usize),
+}
+
+/// The isotropic factor for a template of `tw x th` and an expected scale range.
+pub fn scale_factor(template_grid: usize, tw: u32, th: u32, lo: f32, hi: f32) -> f32 {
+    template_grid as f32 / ((tw as f32 * th as f32).sqrt() * (lo * hi).sqrt())
+}
+
+/// Splits `[lo, hi]` into geometric sub-ranges of ratio at most [`MAX_PASS_RATIO`].
+pub fn split_scale_range(lo: f32, hi: f32) -> Vec<(f32, f32)> {
+    let passes = ((hi / lo).ln() / MAX_PASS_RATIO.ln()).ceil().max(1.0) as usize;
+    let step = (hi / lo).powf(1.0 / passes as f32);
+    (0..passes)
+        .map(|k| (lo * step.powi(k as i32), lo * step.powi(k as i32 + 1)))
+        .collect()
+}
+
+/// The pass for an image `W x H` at factor `f`.
+pub fn scale_pass(image_width: u32, image_height: u32, f: f32) -> ScalePass {
+    let width = ((image_width as f32 * f).round() as usize).max(1);
+    let height = ((image_height as f32 * f).round() as usize).max(1);
+    ScalePass {
+        width,
+        height,
+        factor_x: width as f32 / image_width as f32,
+        factor_y: height as f32 / image_height as f32,
+    }
+}
+
+/// Tiles covering a `width x height` input. One tile when it is small enough.
+pub fn tiles(width: usize, height: usize) -> Vec<Tile> {
+    if width * height <= MAX_WHOLE_PIXELS {
+        return vec![Tile {
+            x0: 0,
+            y0: 0,
+            width,
+            height,
+            core_x: (0, width),
+            core_y: (0, height),
+        }];
+    }
+    let axis = |len: usize| -> Vec<(usize, usize, (usize, usize))> {
+        if len <= TILE {
+            return vec![(0, len, (0, len))];
+        }
+        let core = TILE - 2 * TILE_MARGIN;
+        let count = (len - 2 * TILE_MARGIN).div_ceil(core);
+        (0..count)
+            .map(|k| {
+                let core_start = if k == 0 { 0 } else { TILE_MARGIN + k * core };
+                let core_end = if k + 1 == count {
+                    len
+                } else {
+                    TILE_MARGIN + (k + 1) * core
+                };
+                let start = (TILE_MARGIN + k * core)
+                    .saturating_sub(TILE_MARGIN)
+                    .min(len - TILE);
+                (start, TILE, (core_start, core_end))
+            })
+            .collect()
+    };
+    let mut out = Vec::new();
+    for (y0, h, core_y) in axis(height) {
+        for (x0, w, core_x) in axis(width) {
+            out.push(Tile {
+                x0,
+                y0,
+                width: w,
+                height: h,
+                core_x,
+                core_y,
+            });
+        }
+    }
+    out
+}
+
+#[cfg(test)]
+mod tests {
+    use super::*;
+
+    #[test]
+    fn tile_cores_partition_the_input_and_keep_a_margin() {
+        for (w, h) in [(2048, 2048), (1000, 700), (3000, 513), (900, 300)] {
+            let tiles = tiles(w, h);
+            let mut owner = vec![0u8; w * h];
+            for t in &tiles {
+                assert!(t.x0 + t.width <= w && t.y0 + t.height <= h);
+                for y in t.core_y.0..t.core_y.1 {
+                    for x in t.core_x.0..t.core_x.1 {
+                        owner[y * w + x] += 1;
+                    }
+                }
+                // The core keeps TILE_MARGIN of context except at the input's edges.
+                assert!(t.core_x.0 == 0 || t.core_x.0 >= t.x0 + TILE_MARGIN);
+                assert!(t.core_x.1 == w || t.core_x.1 + TILE_MARGIN <= t.x0 + t.width);
+                assert!(t.core_y.0 == 0 || t.core_y.0 >= t.y0 + TILE_MARGIN);
+                assert!(t.core_y.1 == h || t.core_y.1 + TILE_MARGIN <= t.y0 + t.height);
+            }
+            assert!(owner.iter().all(|&n| n == 1), "{w}x{h}");
+        }
+    }
+
+    #[test]
+    fn scale_factor_centres_the_requested_range() {
+        assert_eq!(scale_factor(36, 36, 36, 1.0, 1.0), 1.0);
+        assert!((scale_factor(36, 120, 120, 1.0, 1.0) - 0.3).abs() < 1e-6);
+        assert!((scale_factor(36, 36, 36, 2.0, 8.0) - 0.25).abs() < 1e-6);
+        let parts = split_scale_range(0.25, 4.0);
+        assert_eq!(parts.len(), 3);
+        assert!((parts[0].0 - 0.25).abs() < 1e-6 && (parts[2].1 - 4.0).abs() < 1e-4);
+        assert_eq!(split_scale_range(0.8, 1.5).len(), 1);
+    }
+}

@@ -1,0 +1,21 @@
+//! The TDCM network in burn: layer for layer the function of the paper's official checkpoint
+//! (see `../shared/reference/README.md`), split into a template encoder and a search matcher,
+//! plus weight loading and backend selection. No images, no poses: tensors in, tensors out.
+
+mod backbone;
+mod cost;
+mod device;
+mod tdcm;
+mod weights;
+
+pub use backbone::{Backbone, BackboneConfig, BackboneTrace, ConvNextBlock, GlobalResponseNorm};
+pub use cost::multiply_adds;
+pub use device::{DeviceError, available_backends, select_device};
+pub use tdcm::{
+    Decoder, HEAD_SCALE_MAX, HEAD_SCALE_MIN, Head, Heads, MatchMaps, SearchMatcher, SearchTrace,
+    TEMPLATE_GRID, TemplateEncoder, Tdcm, TdcmConfig, depthwise_correlation,
+};
+pub use weights::{
+    LoadError, PYTORCH_KEY_MAP, WeightsFormat, load_weights, load_weights_from_bytes,
+    save_weights,
+};

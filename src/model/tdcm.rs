@@ -1,0 +1,273 @@
+//! The Template-Aware Dynamic Convolution Matcher, split the way the service uses it: a
+//! [`TemplateEncoder`] turns a template into depthwise kernels once (cached per template ID) and a
+//! [`SearchMatcher`] runs a batch of search images, each against its own kernels, into the five
+//! output maps.
+
+use burn::nn::conv::{Conv2d, Conv2dConfig};
+use burn::nn::{BatchNorm, BatchNormConfig, PaddingConfig2d, PixelShuffle, PixelShuffleConfig};
+use burn::prelude::*;
+use burn::tensor::activation::{relu, sigmoid, tanh};
+use burn::tensor::module::conv2d;
+use burn::tensor::ops::ConvOptions;
+
+use super::backbone::{BATCH_NORM_EPS, Backbone, BackboneConfig, BackboneTrace};
+
+/// Side of the square grid the network sees a template at (the official checkpoint: 36).
+/// It must be `8n + 4` so that the template features have an odd side (`2n + 1`) and the
+/// correlation output keeps the search feature size.
+pub const TEMPLATE_GRID: usize = 36;
+
+/// Smallest and largest scale the official scale heads can express (`sigmoid * 1.5 + 0.5`).
+pub const HEAD_SCALE_MIN: f32 = 0.5;
+pub const HEAD_SCALE_MAX: f32 = 2.0;
+
+/// Whole-network configuration.
+#[derive(Config, Debug)]
+pub struct TdcmConfig {
+    #[config(default = "BackboneConfig::new()")]
+    pub backbone: BackboneConfig,
+    /// Decoder width after the fusion conv (`conv1` outputs twice this).
+    #[config(default = 96)]
+    pub decoder_channels: usize,
+    /// Hidden width of each head.
+    #[config(default = 12)]
+    pub head_hidden: usize,
+}
+
+impl TdcmConfig {
+    pub fn init(&self, device: &Device) -> Tdcm {
+        Tdcm {
+            template_encoder: TemplateEncoder {
+                backbone: self.backbone.init(device),
+            },
+            search_matcher: SearchMatcher::new(self, device),
+        }
+    }
+}
+
+/// Both halves of the network; the unit that weights are loaded into and saved from.
+#[derive(Module, Debug)]
+pub struct Tdcm {
+    pub template_encoder: TemplateEncoder,
+    pub search_matcher: SearchMatcher,
+}
+
+/// Template branch: template image → per-channel correlation kernels.
+#[derive(Module, Debug)]
+pub struct TemplateEncoder {
+    pub backbone: Backbone,
+}
+
+impl TemplateEncoder {
+    /// # Shapes
+    /// - `templates`: `[batch, 3, G, G]` with `G` = [`TEMPLATE_GRID`]
+    /// - output: `[batch, 96, G/4, G/4]`, one depthwise kernel per channel
+    pub fn forward(&self, templates: Tensor<4>) -> Tensor<4> {
+        let [_, _, h, w] = templates.dims();
+        assert!(
+            h % 8 == 4 && w % 8 == 4,
+            "template grid {h}x{w} is not 8n+4; this is a bug in the caller"
+        );
+        self.backbone.forward(templates)
+    }
+
+    pub fn forward_traced(&self, templates: Tensor<4>) -> (Tensor<4>, BackboneTrace) {
+        self.backbone.forward_traced(templates)
+    }
+}
+
+/// The five output maps at the search image's resolution (`4*floor(H/4)` x `4*floor(W/4)`).
+#[derive(Debug, Clone)]
+pub struct MatchMaps {
+    /// Object-centre heatmap in (0, 1). `[batch, 1, H, W]`
+    pub score: Tensor<4>,
+    /// Probability that the rotation angle is positive. `[batch, 1, H, W]`
+    pub sign: Tensor<4>,
+    /// Cosine of the rotation angle in (-1, 1). `[batch, 1, H, W]`
+    pub cos: Tensor<4>,
+    /// Object width / network template grid, in (0.5, 2). `[batch, 1, H, W]`
+    pub scale_x: Tensor<4>,
+    /// Object height / network template grid, in (0.5, 2). `[batch, 1, H, W]`
+    pub scale_y: Tensor<4>,
+}
+
+/// Every intermediate tensor the parity fixtures store.
+pub struct SearchTrace {
+    pub backbone: BackboneTrace,
+    pub features: Tensor<4>,
+    pub correlation: Tensor<4>,
+    pub fusion: Tensor<4>,
+    pub bn1: Tensor<4>,
+    pub bn2: Tensor<4>,
+}
+
+/// Search branch, correlation and decoder.
+#[derive(Module, Debug)]
+pub struct SearchMatcher {
+    pub backbone: Backbone,
+    /// 3x3 conv over the correlation (the checkpoint calls it `pointwise_conv`).
+    pub fusion: Conv2d,
+    pub decoder: Decoder,
+    pub heads: Heads,
+}
+
+impl SearchMatcher {
+    fn new(config: &TdcmConfig, device: &Device) -> Self {
+        let c = config.backbone.channels;
+        let d = config.decoder_channels;
+        let conv3x3 = |cin: usize, cout: usize| {
+            Conv2dConfig::new([cin, cout], [3, 3])
+                .with_padding(PaddingConfig2d::Explicit(1, 1, 1, 1))
+                .init(device)
+        };
+        Self {
+            backbone: config.backbone.init(device),
+            fusion: conv3x3(c, c),
+            decoder: Decoder {
+                conv1: conv3x3(c, 2 * d),
+                bn1: BatchNormConfig::new(2 * d)
+                    .with_epsilon(BATCH_NORM_EPS)
+                    .init(device),
+                conv2: conv3x3(2 * d / 4, d),
+                bn2: BatchNormConfig::new(d)
+                    .with_epsilon(BATCH_NORM_EPS)
+                    .init(device),
+                shuffle: PixelShuffleConfig::new(2).init(),
+            },
+            heads: Heads::new(d / 4, config.head_hidden, device),
+        }
+    }
+
+    /// # Shapes
+    /// - `images`: `[batch, 3, H, W]`, normalised, `H, W >= 4`
+    /// - `kernels`: `[batch, 96, k, k]`, `k` odd, from [`TemplateEncoder::forward`]
+    pub fn forward(&self, images: Tensor<4>, kernels: Tensor<4>) -> MatchMaps {
+        let features = self.backbone.forward(images);
+        let correlation = depthwise_correlation(features, kernels);
+        self.decode(correlation).0
+    }
+
+    pub fn forward_traced(&self, images: Tensor<4>, kernels: Tensor<4>) -> (MatchMaps, SearchTrace) {
+        let (features, backbone) = self.backbone.forward_traced(images);
+        let correlation = depthwise_correlation(features.clone(), kernels);
+        let (maps, (fusion, bn1, bn2)) = self.decode(correlation.clone());
+        let trace = SearchTrace {
+            backbone,
+            features,
+            correlation,
+            fusion,
+            bn1,
+            bn2,
+        };
+        (maps, trace)
+    }
+
+    fn decode(&self, correlation: Tensor<4>) -> (MatchMaps, (Tensor<4>, Tensor<4>, Tensor<4>)) {
+        let fusion = self.fusion.forward(correlation); // [b, 96, h, w]
+        let (x, bn1, bn2) = self.decoder.forward(fusion.clone()); // [b, 24, 4h, 4w]
+        (self.heads.forward(x), (fusion, bn1, bn2))
+    }
+}
+
+/// Per-sample depthwise correlation: sample `i`'s search features, channel `c`, are
+/// cross-correlated with sample `i`'s kernel for channel `c`; zero padding keeps the size; no bias.
+///
+/// # Shapes
+/// - `features`: `[batch, c, h, w]`
+/// - `kernels`: `[batch, c, k, k]`
+/// - output: `[batch, c, h, w]`
+pub fn depthwise_correlation(features: Tensor<4>, kernels: Tensor<4>) -> Tensor<4> {
+    let [b, c, h, w] = features.dims();
+    let [kb, kc, kh, kw] = kernels.dims();
+    assert!(
+        kb == b && kc == c && kh % 2 == 1 && kw % 2 == 1,
+        "kernels {:?} do not fit features {:?}; this is a bug",
+        kernels.dims(),
+        features.dims()
+    );
+    // Fold the batch into the channel axis so one grouped conv does every sample.
+    let x = features.reshape([1, b * c, h, w]);
+    let weight = kernels.reshape([b * c, 1, kh, kw]);
+    let options = ConvOptions::new([1, 1], [kh / 2, kw / 2], [1, 1], b * c);
+    conv2d(x, weight, None, options).reshape([b, c, h, w])
+}
+
+/// Two (conv3x3 → BatchNorm → ReLU → PixelShuffle x2) stages: 1/4 resolution → full.
+#[derive(Module, Debug)]
+pub struct Decoder {
+    pub conv1: Conv2d,
+    pub bn1: BatchNorm,
+    pub conv2: Conv2d,
+    pub bn2: BatchNorm,
+    pub shuffle: PixelShuffle,
+}
+
+impl Decoder {
+    /// # Shapes
+    /// - `x`: `[batch, 96, h, w]` → `[batch, 24, 4h, 4w]` (plus both pre-ReLU BatchNorm outputs)
+    fn forward(&self, x: Tensor<4>) -> (Tensor<4>, Tensor<4>, Tensor<4>) {
+        let bn1 = self.bn1.forward(self.conv1.forward(x)); // [b, 192, h, w]
+        let x = self.shuffle.forward(relu(bn1.clone())); // [b, 48, 2h, 2w]
+        let bn2 = self.bn2.forward(self.conv2.forward(x)); // [b, 96, 2h, 2w]
+        let x = self.shuffle.forward(relu(bn2.clone())); // [b, 24, 4h, 4w]
+        (x, bn1, bn2)
+    }
+}
+
+/// One prediction head: conv3x3 → ReLU → conv1x1, before its output function.
+#[derive(Module, Debug)]
+pub struct Head {
+    pub conv3x3: Conv2d,
+    pub conv1x1: Conv2d,
+}
+
+impl Head {
+    fn new(channels: usize, hidden: usize, device: &Device) -> Self {
+        Self {
+            conv3x3: Conv2dConfig::new([channels, hidden], [3, 3])
+                .with_padding(PaddingConfig2d::Explicit(1, 1, 1, 1))
+                .init(device),
+            conv1x1: Conv2dConfig::new([hidden, 1], [1, 1]).init(device),
+        }
+    }
+
+    /// Raw logits. `[b, 24, H, W]` → `[b, 1, H, W]`
+    fn forward(&self, x: Tensor<4>) -> Tensor<4> {
+        self.conv1x1.forward(relu(self.conv3x3.forward(x)))
+    }
+}
+
+/// The five heads with their output functions.
+#[derive(Module, Debug)]
+pub struct Heads {
+    pub score: Head,
+    pub sign: Head,
+    pub cos: Head,
+    pub scale_x: Head,
+    pub scale_y: Head,
+}
+
+impl Heads {
+    fn new(channels: usize, hidden: usize, device: &Device) -> Self {
+        Self {
+            score: Head::new(channels, hidden, device),
+            sign: Head::new(channels, hidden, device),
+            cos: Head::new(channels, hidden, device),
+            scale_x: Head::new(channels, hidden, device),
+            scale_y: Head::new(channels, hidden, device),
+        }
+    }
+
+    fn forward(&self, x: Tensor<4>) -> MatchMaps {
+        let scale = |logits: Tensor<4>| {
+            sigmoid(logits) * (HEAD_SCALE_MAX - HEAD_SCALE_MIN) + HEAD_SCALE_MIN
+        };
+        MatchMaps {
+            score: sigmoid(self.score.forward(x.clone())),
+            sign: sigmoid(self.sign.forward(x.clone())),
+            cos: tanh(self.cos.forward(x.clone())),
+            scale_x: scale(self.scale_x.forward(x.clone())),
+            scale_y: scale(self.scale_y.forward(x)),
+        }
+    }
+}

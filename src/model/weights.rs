@@ -1,0 +1,221 @@
+//! Getting weights into a [`Tdcm`]: the authors' PyTorch checkpoint (`.pth`, or the same tensors
+//! as `.safetensors`) through an explicit key map, and our own format (burnpack, `.bpk`).
+//!
+//! # Checkpoint names → our module paths
+//!
+//! | PyTorch (official `model.pth`)                | PoseMatch `Tdcm`                                  |
+//! | --------------------------------------------- | ------------------------------------------------- |
+//! | `backbone_T.`                                 | `template_encoder.backbone.`                      |
+//! | `backbone_O.`                                 | `search_matcher.backbone.`                        |
+//! | `….stem.0.{weight,bias}`                      | `….stem_conv.{weight,bias}`                       |
+//! | `….stem.1.{weight,bias}` (LayerNorm)          | `….stem_norm.{gamma,beta}`                        |
+//! | `….stage1.blocks.N.conv_dw/norm`              | `….blocks.N.conv_dw/norm`                         |
+//! | `….stage1.blocks.N.mlp.{fc1,grn,fc2}`         | `….blocks.N.{fc1,grn,fc2}`                        |
+//! | `….norm.*` (BatchNorm)                        | `….norm.{gamma,beta,running_mean,running_var}`    |
+//! | `pointwise_conv.` (a 3x3 conv)                | `search_matcher.fusion.`                          |
+//! | `conv1.`, `bn1.`, `conv2.`, `bn2.`            | `search_matcher.decoder.{conv1,bn1,conv2,bn2}.`   |
+//! | `conv_{score,sign,cos,scale_x,scale_y}.0.`    | `search_matcher.heads.{…}.conv3x3.`               |
+//! | `conv_{score,sign,cos,scale_x,scale_y}.2.`    | `search_matcher.heads.{…}.conv1x1.`               |
+//!
+//! burn-store's `PyTorchToBurnAdapter` then transposes Linear weights (`[out, in]` → `[in, out]`)
+//! and renames norm `weight`/`bias` to `gamma`/`beta`. The four `num_batches_tracked` counters
+//! are training bookkeeping and are ignored. Anything else missing, unused or misshapen is a
+//! [`LoadError`] that names the first offending tensor.
+
+use std::path::{Path, PathBuf};
+
+use burn::prelude::*;
+use burn::store::{
+    ApplyError, ApplyResult, BurnpackStore, KeyRemapper, ModuleSnapshot, PytorchStore,
+    SafetensorsStore,
+};
+
+use super::tdcm::{Tdcm, TdcmConfig};
+
+/// Regex rewrites from checkpoint names to ours, applied in order (see the module docs).
+pub const PYTORCH_KEY_MAP: &[(&str, &str)] = &[
+    (r"^backbone_T\.", "template_encoder.backbone."),
+    (r"^backbone_O\.", "search_matcher.backbone."),
+    (r"\.stem\.0\.", ".stem_conv."),
+    (r"\.stem\.1\.", ".stem_norm."),
+    (r"\.stage1\.blocks\.", ".blocks."),
+    (r"\.mlp\.(fc1|grn|fc2)\.", ".$1."),
+    (r"^pointwise_conv\.", "search_matcher.fusion."),
+    (r"^(conv1|bn1|conv2|bn2)\.", "search_matcher.decoder.$1."),
+    (r"^conv_(score|sign|cos|scale_x|scale_y)\.0\.", "search_matcher.heads.$1.conv3x3."),
+    (r"^conv_(score|sign|cos|scale_x|scale_y)\.2\.", "search_matcher.heads.$1.conv1x1."),
+];
+
+/// Why weights could not be loaded. Every variant says which file and, where it applies, which
+/// tensor.
+#[derive(Debug, thiserror::Error)]
+pub enum LoadError {
+    #[error("weights file {path}: {message}")]
+    Unreadable { path: PathBuf, message: String },
+    #[error(
+        "weights {source_name} do not fit the TDCM architecture: tensor `{tensor}`: {problem}"
+    )]
+    Mismatch {
+        source_name: String,
+        tensor: String,
+        problem: String,
+    },
+    #[error(
+        "weights file {path} has an unknown extension; use .pth/.pt (PyTorch), .safetensors, or .bpk (PoseMatch)"
+    )]
+    UnknownFormat { path: PathBuf },
+}
+
+/// On-disk formats we read.
+#[derive(Debug, Clone, Copy, PartialEq, Eq)]
+pub enum WeightsFormat {
+    /// A PyTorch `state_dict` of the official model, names as in the authors' repository.
+    Pytorch,
+    /// The same tensors and names as a PyTorch checkpoint, in safetensors.
+    PytorchSafetensors,
+    /// Our own format: burnpack with our module paths.
+    Burnpack,
+}
+
+impl WeightsFormat {
+    pub fn from_path(path: &Path) -> Result<Self, LoadError> {
+        match path.extension().and_then(|e| e.to_str()) {
+            Some("pth" | "pt") => Ok(Self::Pytorch),
+            Some("safetensors") => Ok(Self::PytorchSafetensors),
+            Some("bpk") => Ok(Self::Burnpack),
+            _ => Err(LoadError::UnknownFormat {
+                path: path.to_owned(),
+            }),
+        }
+    }
+}
+
+fn key_remapper() -> KeyRemapper {
+    KeyRemapper::from_patterns(PYTORCH_KEY_MAP.to_vec()).expect("static key map is valid regex")
+}
+
+/// Builds the network on `device` and loads the weights at `path` (format from the extension).
+pub fn load_weights(path: &Path, device: &Device) -> Result<Tdcm, LoadError> {
+    let mut model = TdcmConfig::new().init(device);
+    let unreadable = |message: String| LoadError::Unreadable {
+        path: path.to_owned(),
+        message,
+    };
+    if !path.is_file() {
+        return Err(unreadable("no such file".into()));
+    }
+    let result = match WeightsFormat::from_path(path)? {
+        WeightsFormat::Pytorch => {
+            let mut store = PytorchStore::from_file(path)
+                .remap(key_remapper())
+                .allow_partial(true)
+                .validate(false);
+            model
+                .load_from(&mut store)
+                .map_err(|e| unreadable(e.to_string()))?
+        }
+        WeightsFormat::PytorchSafetensors => {
+            let mut store = SafetensorsStore::from_file(path)
+                .remap(key_remapper())
+                .with_from_adapter(burn::store::PyTorchToBurnAdapter)
+                .allow_partial(true)
+                .validate(false);
+            model
+                .load_from(&mut store)
+                .map_err(|e| unreadable(e.to_string()))?
+        }
+        WeightsFormat::Burnpack => {
+            let mut store = BurnpackStore::from_file(path)
+                .allow_partial(true)
+                .validate(false);
+            model
+                .load_from(&mut store)
+                .map_err(|e| unreadable(e.to_string()))?
+        }
+    };
+    check_complete(&result, &path.display().to_string())?;
+    Ok(model)
+}
+
+/// Loads our own format from bytes (the embedded default weights).
+pub fn load_weights_from_bytes(
+    bytes: &'static [u8],
+    source_name: &str,
+    device: &Device,
+) -> Result<Tdcm, LoadError> {
+    let mut model = TdcmConfig::new().init(device);
+    let mut store = BurnpackStore::from_static(bytes)
+        .allow_partial(true)
+        .validate(false);
+    let result = model
+        .load_from(&mut store)
+        .map_err(|e| LoadError::Unreadable {
+            path: source_name.into(),
+            message: e.to_string(),
+        })?;
+    check_complete(&result, source_name)?;
+    Ok(model)
+}
+
+/// Saves in our own format (burnpack). Overwrites `path`.
+pub fn save_weights(model: &Tdcm, path: &Path) -> Result<(), LoadError> {
+    let mut store = BurnpackStore::from_file(path)
+        .auto_extension(false)
+        .overwrite(true)
+        .metadata("format", "posematch-tdcm")
+        .metadata("license_note", "see models/README.md for provenance");
+    model
+        .save_into(&mut store)
+        .map_err(|e| LoadError::Unreadable {
+            path: path.to_owned(),
+            message: e.to_string(),
+        })
+}
+
+/// Turns burn-store's report into a hard error on the first problem, so that a wrong checkpoint
+/// never runs with half-random weights.
+fn check_complete(result: &ApplyResult, source_name: &str) -> Result<(), LoadError> {
+    let mismatch = |tensor: &str, problem: String| LoadError::Mismatch {
+        source_name: source_name.to_owned(),
+        tensor: tensor.to_owned(),
+        problem,
+    };
+    if let Some(error) = result.errors.first() {
+        return Err(match error {
+            ApplyError::ShapeMismatch {
+                path,
+                expected,
+                found,
+            } => mismatch(
+                path,
+                format!(
+                    "expected shape {:?}, the file has {:?}",
+                    expected,
+                    found
+                ),
+            ),
+            ApplyError::DTypeMismatch {
+                path,
+                expected,
+                found,
+            } => mismatch(path, format!("expected {expected:?}, the file has {found:?}")),
+            ApplyError::AdapterError { path, message } | ApplyError::LoadError { path, message } => {
+                mismatch(path, message.clone())
+            }
+        });
+    }
+    if let Some((path, _)) = result.missing.first() {
+        return Err(mismatch(path, "missing from the file".into()));
+    }
+    if let Some(path) = result
+        .unused
+        .iter()
+        .find(|p| !p.ends_with("num_batches_tracked"))
+    {
+        return Err(mismatch(
+            path,
+            "the file has this tensor but the network has no such parameter".into(),
+        ));
+    }
+    Ok(())
+}
