@@ -69,7 +69,9 @@ fn benches(c: &mut Criterion) {
     let encoded = matcher.encode_template(&template).unwrap();
 
     let mut group = c.benchmark_group("network");
-    group.sample_size(10).measurement_time(Duration::from_secs(8));
+    group
+        .sample_size(10)
+        .measurement_time(Duration::from_secs(8));
     let template_input = Tensor::<4>::random(
         [1, 3, 36, 36],
         burn::tensor::Distribution::Normal(0.0, 1.0),
@@ -92,20 +94,26 @@ fn benches(c: &mut Criterion) {
         );
         let kernels = Tensor::cat(vec![encoded.kernel.clone(); batch], 0);
         group.throughput(Throughput::Elements(batch as u64));
-        group.bench_with_input(BenchmarkId::new("search_224_batch", batch), &batch, |b, _| {
-            b.iter(|| {
-                let maps = matcher
-                    .model()
-                    .search_matcher
-                    .forward(images.clone(), kernels.clone());
-                maps.score.into_data()
-            })
-        });
+        group.bench_with_input(
+            BenchmarkId::new("search_224_batch", batch),
+            &batch,
+            |b, _| {
+                b.iter(|| {
+                    let maps = matcher
+                        .model()
+                        .search_matcher
+                        .forward(images.clone(), kernels.clone());
+                    maps.stacked.into_data()
+                })
+            },
+        );
     }
     group.finish();
 
     let mut group = c.benchmark_group("pipeline");
-    group.sample_size(10).measurement_time(Duration::from_secs(10));
+    group
+        .sample_size(10)
+        .measurement_time(Duration::from_secs(10));
     let options = MatchOptions {
         refine: false,
         ..MatchOptions::default()
@@ -113,7 +121,9 @@ fn benches(c: &mut Criterion) {
     for side in [224u32, 1024, 2048] {
         let image = frame(side, side);
         if side > 224 {
-            group.sample_size(10).measurement_time(Duration::from_secs(30));
+            group
+                .sample_size(10)
+                .measurement_time(Duration::from_secs(30));
         }
         group.bench_function(format!("match_{side}x{side}"), |b| {
             b.iter(|| matcher.match_one(&encoded, &image, &options).unwrap())

@@ -36,30 +36,56 @@ fn official_checkpoint_reproduces_the_official_decode() {
     let tmp = tempfile::tempdir().unwrap();
     let weights = dir.join("tdcm-official.pth").display().to_string();
     // (pair, template width, height, centre tolerance px, angle tolerance deg)
-    for (pair, tw, th, max_px, max_deg) in [("b1", 36.0, 36.0, 0.5, 1.0), ("a", 34.0, 30.0, 2.0, 5.0)] {
+    for (pair, tw, th, max_px, max_deg) in
+        [("b1", 36.0, 36.0, 0.5, 1.0), ("a", 34.0, 30.0, 2.0, 5.0)]
+    {
         let (template, image) = write_pair(&st, pair, tmp.path());
         let (code, stdout, stderr) = posematch(&[
-            "match", "--template", &template, "--image", &image, "--weights", &weights,
-            "--convention", "gray", "--max-instances", "1", "--no-refine",
+            "match",
+            "--template",
+            &template,
+            "--image",
+            &image,
+            "--weights",
+            &weights,
+            "--convention",
+            "gray",
+            "--max-instances",
+            "1",
+            "--no-refine",
         ]);
         assert_eq!(code, 0, "{stderr}");
         let pose = best_pose(&stdout);
         let official = official_decode(&bytes, pair);
-        let (ox, oy) = (official["center_xy"][0].as_f64().unwrap(), official["center_xy"][1].as_f64().unwrap());
+        let (ox, oy) = (
+            official["center_xy"][0].as_f64().unwrap(),
+            official["center_xy"][1].as_f64().unwrap(),
+        );
         let (x, y) = (pose["x"].as_f64().unwrap(), pose["y"].as_f64().unwrap());
         let distance = ((x - ox).powi(2) + (y - oy).powi(2)).sqrt();
-        let angle = angle_diff(pose["angle_deg"].as_f64().unwrap(), official["angle_deg"].as_f64().unwrap());
+        let angle = angle_diff(
+            pose["angle_deg"].as_f64().unwrap(),
+            official["angle_deg"].as_f64().unwrap(),
+        );
         // Official scales are relative to the 36-pixel grid; ours to the registered template.
         let osx = official["sx"].as_f64().unwrap() * 36.0 / tw;
         let osy = official["sy"].as_f64().unwrap() * 36.0 / th;
         println!(
             "{pair}: ours ({x:.2}, {y:.2}) {:.2}° sx {:.3} sy {:.3}; official ({ox:.2}, {oy:.2}) {:.2}° sx {osx:.3} sy {osy:.3}; \
              centre off by {distance:.2} px, angle by {angle:.2}°",
-            pose["angle_deg"].as_f64().unwrap(), pose["scale_x"].as_f64().unwrap(), pose["scale_y"].as_f64().unwrap(),
+            pose["angle_deg"].as_f64().unwrap(),
+            pose["scale_x"].as_f64().unwrap(),
+            pose["scale_y"].as_f64().unwrap(),
             official["angle_deg"].as_f64().unwrap()
         );
-        assert!(distance <= max_px, "{pair}: centre {distance} px from the official decode");
-        assert!(angle <= max_deg, "{pair}: angle {angle}° from the official decode");
+        assert!(
+            distance <= max_px,
+            "{pair}: centre {distance} px from the official decode"
+        );
+        assert!(
+            angle <= max_deg,
+            "{pair}: angle {angle}° from the official decode"
+        );
     }
 }
 
@@ -86,7 +112,13 @@ fn batch_mode_reports_each_line_and_survives_bad_ones() {
     let out = tmp.path().join("results.jsonl");
     let weights = dir.join("tdcm-official.pth").display().to_string();
     let (code, _, stderr) = posematch(&[
-        "match", "--pairs", pairs.to_str().unwrap(), "--out", out.to_str().unwrap(), "--weights", &weights,
+        "match",
+        "--pairs",
+        pairs.to_str().unwrap(),
+        "--out",
+        out.to_str().unwrap(),
+        "--weights",
+        &weights,
     ]);
     assert_eq!(code, 0, "{stderr}");
     let lines: Vec<Value> = std::fs::read_to_string(&out)
@@ -105,7 +137,11 @@ fn batch_mode_reports_each_line_and_survives_bad_ones() {
     assert!((pose["x"].as_f64().unwrap() - 119.5).abs() < 3.0, "{pose}");
     assert!((pose["y"].as_f64().unwrap() - 99.5).abs() < 3.0, "{pose}");
     assert_eq!(lines[1]["id"], "two");
-    assert!(lines[1]["error"].as_str().unwrap().contains("empty"), "{}", lines[1]);
+    assert!(
+        lines[1]["error"].as_str().unwrap().contains("empty"),
+        "{}",
+        lines[1]
+    );
     assert!(lines[2]["error"].as_str().unwrap().contains("JSON"));
     assert!(lines[3]["poses"].as_array().unwrap().len() <= 2);
 }
@@ -120,14 +156,25 @@ fn overlay_is_written() {
     let overlay = tmp.path().join("overlay.png");
     let weights = dir.join("tdcm-official.pth").display().to_string();
     let (code, _, stderr) = posematch(&[
-        "match", "--template", &template, "--image", &image, "--weights", &weights,
-        "--overlay", overlay.to_str().unwrap(),
+        "match",
+        "--template",
+        &template,
+        "--image",
+        &image,
+        "--weights",
+        &weights,
+        "--overlay",
+        overlay.to_str().unwrap(),
     ]);
     assert_eq!(code, 0, "{stderr}");
     let drawn = image::open(&overlay).unwrap().to_rgb8();
     let original = image::open(&image).unwrap().to_rgb8();
     assert_eq!(drawn.dimensions(), original.dimensions());
-    let changed = drawn.pixels().zip(original.pixels()).filter(|(a, b)| a != b).count();
+    let changed = drawn
+        .pixels()
+        .zip(original.pixels())
+        .filter(|(a, b)| a != b)
+        .count();
     assert!(changed > 100, "overlay drew only {changed} pixels");
 }
 
@@ -137,19 +184,25 @@ fn malformed_input_fails_with_one_clear_line() {
     let tmp = tempfile::tempdir().unwrap();
     let p = |name: &str| tmp.path().join(name);
     let good_template = p("template.png");
-    image::RgbImage::from_fn(36, 36, |x, y| image::Rgb([(x * 7) as u8, (y * 7) as u8, 90]))
-        .save(&good_template)
-        .unwrap();
+    image::RgbImage::from_fn(36, 36, |x, y| {
+        image::Rgb([(x * 7) as u8, (y * 7) as u8, 90])
+    })
+    .save(&good_template)
+    .unwrap();
     let good_image = p("image.png");
-    image::RgbImage::from_fn(120, 100, |x, y| image::Rgb([(x * 2) as u8, (y * 2) as u8, 30]))
-        .save(&good_image)
-        .unwrap();
+    image::RgbImage::from_fn(120, 100, |x, y| {
+        image::Rgb([(x * 2) as u8, (y * 2) as u8, 30])
+    })
+    .save(&good_image)
+    .unwrap();
     std::fs::write(p("empty.png"), b"").unwrap();
     let png = std::fs::read(&good_image).unwrap();
     std::fs::write(p("truncated.png"), &png[..png.len() / 2]).unwrap();
     std::fs::write(p("text.png"), b"this is a text file, not an image\n").unwrap();
     image::RgbImage::new(1, 1).save(p("tiny.png")).unwrap();
-    image::RgbImage::new(200, 200).save(p("big_template.png")).unwrap();
+    image::RgbImage::new(200, 200)
+        .save(p("big_template.png"))
+        .unwrap();
     std::fs::write(p("huge_header.png"), png_header_claiming(100_000, 100_000)).unwrap();
 
     // A weights file is not needed to reject bad images, but give one when available so the
@@ -160,32 +213,72 @@ fn malformed_input_fails_with_one_clear_line() {
         ("template.png", "truncated.png", "corrupt or truncated"),
         ("text.png", "image.png", "not a supported image"),
         ("tiny.png", "image.png", "1x1"),
-        ("big_template.png", "image.png", "larger than the search image"),
+        (
+            "big_template.png",
+            "image.png",
+            "larger than the search image",
+        ),
         ("template.png", "huge_header.png", "100000x100000"),
     ];
     for (template, image, expected) in cases {
         let (t, i) = (p(template), p(image));
-        let mut args = vec!["match", "--template", t.to_str().unwrap(), "--image", i.to_str().unwrap()];
+        let mut args = vec![
+            "match",
+            "--template",
+            t.to_str().unwrap(),
+            "--image",
+            i.to_str().unwrap(),
+        ];
         if let Some(w) = &weights {
             args.extend(["--weights", w.as_str()]);
         }
         let (code, stdout, stderr) = posematch(&args);
         assert_ne!(code, 0, "{template} / {image} should fail");
         assert!(stdout.is_empty(), "{stdout}");
-        assert!(!stderr.contains("panicked"), "{template} / {image}: {stderr}");
-        assert_eq!(stderr.trim().lines().count(), 1, "{template} / {image}: {stderr}");
-        assert!(stderr.contains(expected), "{template} / {image}: expected `{expected}` in: {stderr}");
+        assert!(
+            !stderr.contains("panicked"),
+            "{template} / {image}: {stderr}"
+        );
+        assert_eq!(
+            stderr.trim().lines().count(),
+            1,
+            "{template} / {image}: {stderr}"
+        );
+        assert!(
+            stderr.contains(expected),
+            "{template} / {image}: expected `{expected}` in: {stderr}"
+        );
     }
 
     // Missing weights and bad options are usage errors (exit 2).
-    let (t, i) = (good_template.to_str().unwrap(), good_image.to_str().unwrap());
-    let (code, _, stderr) = posematch(&["match", "--template", t, "--image", i, "--weights", "/nonexistent.pth"]);
+    let (t, i) = (
+        good_template.to_str().unwrap(),
+        good_image.to_str().unwrap(),
+    );
+    let (code, _, stderr) = posematch(&[
+        "match",
+        "--template",
+        t,
+        "--image",
+        i,
+        "--weights",
+        "/nonexistent.pth",
+    ]);
     assert_ne!(code, 0);
     assert!(stderr.contains("no such file"), "{stderr}");
-    let (code, _, stderr) = posematch(&["match", "--template", t, "--image", i, "--min-score", "7"]);
+    let (code, _, stderr) =
+        posematch(&["match", "--template", t, "--image", i, "--min-score", "7"]);
     assert_eq!(code, 2, "{stderr}");
     assert!(stderr.contains("min_score"), "{stderr}");
-    let (code, _, stderr) = posematch(&["match", "--template", t, "--image", i, "--scale-range", "3,1"]);
+    let (code, _, stderr) = posematch(&[
+        "match",
+        "--template",
+        t,
+        "--image",
+        i,
+        "--scale-range",
+        "3,1",
+    ]);
     assert_eq!(code, 2, "{stderr}");
     assert!(stderr.contains("scale range"), "{stderr}");
 }
@@ -200,7 +293,10 @@ fn png_header_claiming(w: u32, h: u32) -> Vec<u8> {
     let mut png = b"\x89PNG\r\n\x1a\n".to_vec();
     for (kind, data) in [
         (&b"IHDR"[..], ihdr),
-        (&b"IDAT"[..], vec![0x78, 0x9c, 0x03, 0x00, 0x00, 0x00, 0x00, 0x01]),
+        (
+            &b"IDAT"[..],
+            vec![0x78, 0x9c, 0x03, 0x00, 0x00, 0x00, 0x00, 0x01],
+        ),
         (&b"IEND"[..], Vec::new()),
     ] {
         let mut chunk = kind.to_vec();
@@ -217,7 +313,11 @@ fn crc32(data: &[u8]) -> u32 {
     for &byte in data {
         crc ^= byte as u32;
         for _ in 0..8 {
-            crc = if crc & 1 != 0 { (crc >> 1) ^ 0xEDB8_8320 } else { crc >> 1 };
+            crc = if crc & 1 != 0 {
+                (crc >> 1) ^ 0xEDB8_8320
+            } else {
+                crc >> 1
+            };
         }
     }
     !crc

@@ -7,7 +7,7 @@
 use std::path::PathBuf;
 
 use burn::prelude::*;
-use posematch::model::{Tdcm, available_backends, load_weights};
+use posematch::model::{MatchMaps, Tdcm, available_backends, load_weights};
 use safetensors::SafeTensors;
 
 fn reference_dir() -> Option<PathBuf> {
@@ -24,7 +24,9 @@ fn reference_dir() -> Option<PathBuf> {
 }
 
 fn read_f32(st: &SafeTensors, name: &str) -> (Vec<f32>, Vec<usize>) {
-    let view = st.tensor(name).unwrap_or_else(|e| panic!("fixture {name}: {e}"));
+    let view = st
+        .tensor(name)
+        .unwrap_or_else(|e| panic!("fixture {name}: {e}"));
     assert_eq!(view.dtype(), safetensors::Dtype::F32, "{name}");
     let values = view
         .data()
@@ -55,8 +57,16 @@ fn compare(st: &SafeTensors, name: &str, actual: Tensor<4>, absolute_only: bool)
         .zip(&actual)
         .map(|(e, a)| (e - a).abs())
         .enumerate()
-        .fold((0, 0f32), |best, (i, d)| if d > best.1 || d.is_nan() { (i, d) } else { best });
-    println!("{name:24} max|diff| {worst:.3e} (tolerance {tolerance:.1e}, max|value| {magnitude:.1})");
+        .fold((0, 0f32), |best, (i, d)| {
+            if d > best.1 || d.is_nan() {
+                (i, d)
+            } else {
+                best
+            }
+        });
+    println!(
+        "{name:24} max|diff| {worst:.3e} (tolerance {tolerance:.1e}, max|value| {magnitude:.1})"
+    );
     (worst > tolerance || worst.is_nan()).then(|| {
         format!(
             "{name}: element {worst_index} differs by {worst:e} (expected {}, got {}), tolerance {tolerance:e}",
@@ -83,12 +93,12 @@ fn check_backend(device: &Device, model: &Tdcm, st: &SafeTensors) -> Vec<String>
             ("pointwise", trace.fusion, false),
             ("bn1", trace.bn1, false),
             ("bn2", trace.bn2, false),
-            ("score", maps.score, true),
-            ("sign", maps.sign, true),
-            ("cos", maps.cos, true),
-            ("scale_x", maps.scale_x, true),
-            ("scale_y", maps.scale_y, true),
         ];
+        let heads = MatchMaps::CHANNELS
+            .iter()
+            .enumerate()
+            .map(|(i, name)| (*name, maps.channel(i), true));
+        let checks = checks.into_iter().chain(heads);
         for (name, actual, absolute_only) in checks {
             failures.extend(compare(st, &n(name), actual, absolute_only));
         }
@@ -118,5 +128,9 @@ fn network_reproduces_every_fixture_tensor_on_every_backend() {
             );
         }
     }
-    assert!(failures.is_empty(), "parity failures:\n{}", failures.join("\n"));
+    assert!(
+        failures.is_empty(),
+        "parity failures:\n{}",
+        failures.join("\n")
+    );
 }

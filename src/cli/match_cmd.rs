@@ -163,7 +163,10 @@ fn run_pairs(
         writeln!(output, "{record}").map_err(|e| CliError::io(out, e))?;
     }
     output.flush().map_err(|e| CliError::io(out, e))?;
-    eprintln!("{ok} pairs matched, {failed} failed; results in {}", out.display());
+    eprintln!(
+        "{ok} pairs matched, {failed} failed; results in {}",
+        out.display()
+    );
     Ok(())
 }
 
@@ -191,10 +194,9 @@ fn match_line(
         let image_path = path("image")?;
         let mut options = options.clone();
         if let Some(n) = record.get("max_instances") {
-            options.max_instances = n
-                .as_u64()
-                .ok_or("`max_instances` must be a positive integer")?
-                as usize;
+            options.max_instances =
+                n.as_u64()
+                    .ok_or("`max_instances` must be a positive integer")? as usize;
             options.validate()?;
         }
         if !templates.contains_key(&template_path) {

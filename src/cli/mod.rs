@@ -62,7 +62,9 @@ fn parse_convention(s: &str) -> Result<InputConvention, String> {
     match s {
         "imagenet" => Ok(InputConvention::ImagenetRgb),
         "gray" | "grey" => Ok(InputConvention::Gray),
-        _ => Err(format!("unknown convention `{s}`: use `imagenet` or `gray`")),
+        _ => Err(format!(
+            "unknown convention `{s}`: use `imagenet` or `gray`"
+        )),
     }
 }
 

@@ -37,7 +37,13 @@ pub fn save_overlay(
     for pose in poses {
         let corners = pose.corners(tw, th);
         for i in 0..4 {
-            thick_line(&mut canvas, corners[i], corners[(i + 1) % 4], BOX, thickness);
+            thick_line(
+                &mut canvas,
+                corners[i],
+                corners[(i + 1) % 4],
+                BOX,
+                thickness,
+            );
         }
         let tip = pose.map_point(tw / 2.0, 0.0);
         thick_line(&mut canvas, (pose.x, pose.y), tip, ARROW, thickness);
@@ -46,7 +52,12 @@ pub fn save_overlay(
             let back = pose.map_point(tw / 2.0 - tw / 8.0, side * th / 10.0);
             thick_line(&mut canvas, tip, back, ARROW, thickness);
         }
-        draw_cross_mut(&mut canvas, ARROW, pose.x.round() as i32, pose.y.round() as i32);
+        draw_cross_mut(
+            &mut canvas,
+            ARROW,
+            pose.x.round() as i32,
+            pose.y.round() as i32,
+        );
         let label = format!("{:.2}", pose.score);
         draw_text(
             &mut canvas,
@@ -61,7 +72,13 @@ pub fn save_overlay(
         .map_err(|e| CliError::io(path, std::io::Error::other(e)))
 }
 
-fn thick_line(canvas: &mut RgbImage, a: (f32, f32), b: (f32, f32), colour: Rgb<u8>, thickness: i32) {
+fn thick_line(
+    canvas: &mut RgbImage,
+    a: (f32, f32),
+    b: (f32, f32),
+    colour: Rgb<u8>,
+    thickness: i32,
+) {
     let half = thickness / 2;
     for dx in -half..=half {
         for dy in -half..=half {

@@ -36,9 +36,7 @@ pub enum DecodeError {
         #[source]
         source: std::io::Error,
     },
-    #[error(
-        "{what}: not a supported image (PNG, JPEG, BMP, TIFF, PNM expected): {message}"
-    )]
+    #[error("{what}: not a supported image (PNG, JPEG, BMP, TIFF, PNM expected): {message}")]
     Unsupported { what: String, message: String },
     #[error(
         "{what}: the header says {width}x{height} = {pixels} pixels, above the limit of {limit}; crop or downscale the image"
@@ -117,7 +115,11 @@ pub fn decode_image_file(path: &Path, limits: ImageLimits) -> Result<RgbImage32,
 }
 
 /// Decodes encoded bytes, checking the header's size against `limits` before decoding.
-pub fn decode_image(bytes: &[u8], what: &str, limits: ImageLimits) -> Result<RgbImage32, DecodeError> {
+pub fn decode_image(
+    bytes: &[u8],
+    what: &str,
+    limits: ImageLimits,
+) -> Result<RgbImage32, DecodeError> {
     let what = what.to_owned();
     if bytes.is_empty() {
         return Err(DecodeError::Empty { what });

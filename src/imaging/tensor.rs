@@ -72,8 +72,7 @@ pub fn resize_rgb(image: &RgbImage32, width: u32, height: u32) -> RgbImage32 {
     let src = Image::from_vec_u8(image.width, image.height, src_bytes, PixelType::F32x3)
         .expect("buffer length matches the image size; this is a bug");
     let mut dst = Image::new(width, height, PixelType::F32x3);
-    let options =
-        ResizeOptions::new().resize_alg(ResizeAlg::Convolution(FilterType::Bilinear));
+    let options = ResizeOptions::new().resize_alg(ResizeAlg::Convolution(FilterType::Bilinear));
     Resizer::new()
         .resize(&src, &mut dst, &options)
         .expect("same pixel type on both sides; this is a bug");

@@ -158,7 +158,13 @@ mod tests {
         }
         let a = angle_deg.to_radians();
         let sign = vec![if a > 0.0 { 0.9 } else { 0.1 }; w * h];
-        [score, sign, vec![a.cos(); w * h], vec![1.2; w * h], vec![0.8; w * h]]
+        [
+            score,
+            sign,
+            vec![a.cos(); w * h],
+            vec![1.2; w * h],
+            vec![0.8; w * h],
+        ]
     }
 
     fn planes(m: &[Vec<f32>; 5], w: usize, h: usize) -> MapPlanes<'_> {
@@ -180,7 +186,10 @@ mod tests {
         let peaks = find_peaks(&p, 0.5, 10);
         assert_eq!(peaks, vec![(21, 30)]);
         let d = decode_peak(&p, 21, 30);
-        assert!((d.x - 30.3).abs() < 0.05 && (d.y - 20.7).abs() < 0.05, "{d:?}");
+        assert!(
+            (d.x - 30.3).abs() < 0.05 && (d.y - 20.7).abs() < 0.05,
+            "{d:?}"
+        );
         assert!((d.angle_deg + 135.0).abs() < 1e-3, "{d:?}");
         assert!((d.scale_x - 1.2).abs() < 1e-5 && (d.scale_y - 0.8).abs() < 1e-5);
     }
@@ -203,8 +212,18 @@ mod tests {
     fn finds_every_separate_peak_best_first() {
         let a = bump(80, 40, 15.0, 20.0, 10.0);
         let b = bump(80, 40, 60.0, 18.0, 10.0);
-        let score: Vec<f32> = a[0].iter().zip(&b[0]).map(|(x, y)| x.max(0.9 * y)).collect();
-        let m = [score, a[1].clone(), a[2].clone(), a[3].clone(), a[4].clone()];
+        let score: Vec<f32> = a[0]
+            .iter()
+            .zip(&b[0])
+            .map(|(x, y)| x.max(0.9 * y))
+            .collect();
+        let m = [
+            score,
+            a[1].clone(),
+            a[2].clone(),
+            a[3].clone(),
+            a[4].clone(),
+        ];
         let peaks = find_peaks(&planes(&m, 80, 40), 0.5, 10);
         assert_eq!(peaks, vec![(20, 15), (18, 60)]);
         assert!(find_peaks(&planes(&m, 80, 40), 0.95, 10).len() == 1);

@@ -31,9 +31,7 @@ pub enum MatchError {
         "template is {width}x{height}; each side must be between {MIN_TEMPLATE_SIDE} and {MAX_TEMPLATE_SIDE} pixels"
     )]
     TemplateSize { width: u32, height: u32 },
-    #[error(
-        "search image is {width}x{height}; each side must be at least {MIN_IMAGE_SIDE} pixels"
-    )]
+    #[error("search image is {width}x{height}; each side must be at least {MIN_IMAGE_SIDE} pixels")]
     ImageTooSmall { width: u32, height: u32 },
     #[error(
         "template ({tw}x{th}) is larger than the search image ({iw}x{ih}); pass a larger image or register a smaller template"
@@ -95,6 +93,8 @@ pub struct Matcher {
     convention: InputConvention,
     /// Most network pieces in one forward pass.
     max_batch: usize,
+    /// Network inputs up to this many pixels run whole; larger ones are tiled.
+    max_whole_pixels: usize,
 }
 
 /// A network-input piece: one tile of one pass of one job.
@@ -112,7 +112,15 @@ impl Matcher {
             device,
             convention,
             max_batch: 4,
+            max_whole_pixels: plan::MAX_WHOLE_PIXELS,
         }
+    }
+
+    /// Inputs above `pixels` network pixels run as overlapping tiles (bounded memory; see
+    /// [`plan`]). The default is [`plan::MAX_WHOLE_PIXELS`].
+    pub fn with_max_whole_pixels(mut self, pixels: usize) -> Self {
+        self.max_whole_pixels = pixels;
+        self
     }
 
     pub fn with_max_batch(mut self, max_batch: usize) -> Self {
@@ -163,7 +171,7 @@ impl Matcher {
         let mut results: Vec<Result<MatchOutcome, MatchError>> = Vec::with_capacity(jobs.len());
         let mut pieces = Vec::new();
         for (index, job) in jobs.iter().enumerate() {
-            match prepare(index, job) {
+            match prepare(index, job, self.max_whole_pixels) {
                 Ok(job_pieces) => {
                     pieces.extend(job_pieces);
                     results.push(Ok(MatchOutcome {
@@ -180,10 +188,13 @@ impl Matcher {
         let (mut network_ms, mut decode_ms) = (0.0, 0.0);
         // Same-sized pieces share a forward pass.
         pieces.sort_by_key(|p| (p.input.width, p.input.height));
-        for group in pieces.chunk_by(|a, b| {
-            (a.input.width, a.input.height) == (b.input.width, b.input.height)
-        }) {
-            for batch in group.chunks(self.max_batch) {
+        for group in pieces
+            .chunk_by(|a, b| (a.input.width, a.input.height) == (b.input.width, b.input.height))
+        {
+            // Large tiles go one at a time so memory stays bounded; small images batch.
+            let pixels = group[0].input.width as usize * group[0].input.height as usize;
+            let per_batch = (plan::MAX_WHOLE_PIXELS / pixels).clamp(1, self.max_batch);
+            for batch in group.chunks(per_batch) {
                 let t = Instant::now();
                 let planes = self.run_network(jobs, batch);
                 network_ms += ms_since(t);
@@ -231,11 +242,7 @@ impl Matcher {
                 .collect(),
             0,
         );
-        let maps = self.model.search_matcher.forward(images, kernels);
-        let stacked = Tensor::cat(
-            vec![maps.score, maps.sign, maps.cos, maps.scale_x, maps.scale_y],
-            1,
-        ); // [b, 5, H, W]
+        let stacked = self.model.search_matcher.forward(images, kernels).stacked; // [b, 5, H, W]
         let [b, _, h, w] = stacked.dims();
         let values: Vec<f32> = stacked
             .into_data()
@@ -263,7 +270,11 @@ fn check_template_size(width: u32, height: u32) -> Result<(), MatchError> {
 }
 
 /// Validates a job and cuts it into network pieces.
-fn prepare(index: usize, job: &MatchJob) -> Result<Vec<Piece>, MatchError> {
+fn prepare(
+    index: usize,
+    job: &MatchJob,
+    max_whole_pixels: usize,
+) -> Result<Vec<Piece>, MatchError> {
     job.options.validate().map_err(MatchError::InvalidOption)?;
     let (tw, th) = (job.template.width, job.template.height);
     let (iw, ih) = (job.image.width, job.image.height);
@@ -307,18 +318,22 @@ fn prepare(index: usize, job: &MatchJob) -> Result<Vec<Piece>, MatchError> {
     for pass in passes {
         let resized = resize_rgb(job.image, pass.width as u32, pass.height as u32);
         let padded = pad_to_min_side(resized, MIN_INPUT_SIDE);
-        for tile in plan::tiles(padded.width as usize, padded.height as usize) {
-            let input = if tile.width == padded.width as usize && tile.height == padded.height as usize
-            {
-                padded.clone()
-            } else {
-                padded.crop(
-                    tile.x0 as u32,
-                    tile.y0 as u32,
-                    tile.width as u32,
-                    tile.height as u32,
-                )
-            };
+        for tile in plan::tiles(
+            padded.width as usize,
+            padded.height as usize,
+            max_whole_pixels,
+        ) {
+            let input =
+                if tile.width == padded.width as usize && tile.height == padded.height as usize {
+                    padded.clone()
+                } else {
+                    padded.crop(
+                        tile.x0 as u32,
+                        tile.y0 as u32,
+                        tile.width as u32,
+                        tile.height as u32,
+                    )
+                };
             pieces.push(Piece {
                 job: index,
                 pass,

@@ -12,19 +12,20 @@
 //! in one pass (ratio > 3) is split into several passes at different `f`.
 //!
 //! # Tiling
-//! Up to [`MAX_WHOLE_PIXELS`] network pixels run as one piece. Larger inputs run as
-//! [`TILE`]-sized tiles that overlap by `2 x` [`TILE_MARGIN`]; each tile owns only the peaks in
-//! its core, so every object centre is decoded in a tile that holds the whole object (an object
+//! Up to [`MAX_WHOLE_PIXELS`] network pixels run as one piece. Larger inputs run as equal tiles
+//! of side at most [`TILE`] that overlap by `2 x` [`TILE_MARGIN`]; each tile owns only the peaks
+//! in its core, so every object centre is decoded in a tile that holds the whole object (an object
 //! at the top of the scale range spans at most 2·36·√2 ≈ 102 px, so a 64 px margin covers half of
 //! it). GRN normalises over the whole feature map, so tiles see slightly different features than
 //! one full pass would; `tests/matching.rs` measures what that costs.
 
-/// Network input side of a tile (a multiple of 4).
-pub const TILE: usize = 512;
+/// Largest network input side of a tile (a multiple of 4).
+pub const TILE: usize = 1024;
 /// Overlap on each side of a tile's core.
 pub const TILE_MARGIN: usize = 64;
-/// Inputs up to this many network pixels run whole (about 768x768).
-pub const MAX_WHOLE_PIXELS: usize = 600_000;
+/// Inputs up to this many network pixels run whole (1024x1024). Peak memory of one forward
+/// pass is about 0.6 KB per network pixel, so this bounds it near 700 MB.
+pub const MAX_WHOLE_PIXELS: usize = TILE * TILE;
 /// Refuse a search that would need more network pixels than this (a tiny template on a huge
 /// frame): minutes of CPU that nobody asked for.
 pub const MAX_NETWORK_PIXELS: u64 = 64_000_000;
@@ -82,9 +83,11 @@ pub fn scale_pass(image_width: u32, image_height: u32, f: f32) -> ScalePass {
     }
 }
 
-/// Tiles covering a `width x height` input. One tile when it is small enough.
-pub fn tiles(width: usize, height: usize) -> Vec<Tile> {
-    if width * height <= MAX_WHOLE_PIXELS {
+/// Tiles covering a `width x height` input. One tile when it has at most `max_whole_pixels`;
+/// otherwise the fewest square-budget tiles (side at most `sqrt(max_whole_pixels)`) per axis, all the same size (so they batch
+/// together), each owning its core.
+pub fn tiles(width: usize, height: usize, max_whole_pixels: usize) -> Vec<Tile> {
+    if width * height <= max_whole_pixels {
         return vec![Tile {
             x0: 0,
             y0: 0,
@@ -94,30 +97,12 @@ pub fn tiles(width: usize, height: usize) -> Vec<Tile> {
             core_y: (0, height),
         }];
     }
-    let axis = |len: usize| -> Vec<(usize, usize, (usize, usize))> {
-        if len <= TILE {
-            return vec![(0, len, (0, len))];
-        }
-        let core = TILE - 2 * TILE_MARGIN;
-        let count = (len - 2 * TILE_MARGIN).div_ceil(core);
-        (0..count)
-            .map(|k| {
-                let core_start = if k == 0 { 0 } else { TILE_MARGIN + k * core };
-                let core_end = if k + 1 == count {
-                    len
-                } else {
-                    TILE_MARGIN + (k + 1) * core
-                };
-                let start = (TILE_MARGIN + k * core)
-                    .saturating_sub(TILE_MARGIN)
-                    .min(len - TILE);
-                (start, TILE, (core_start, core_end))
-            })
-            .collect()
-    };
+    // Square tiles of the same pixel budget; at least 4x the margin so cores stay useful.
+    let side = (((max_whole_pixels as f64).sqrt() as usize) / 4 * 4).max(4 * TILE_MARGIN);
     let mut out = Vec::new();
-    for (y0, h, core_y) in axis(height) {
-        for (x0, w, core_x) in axis(width) {
+    let (ys, xs) = (axis_spans(height, side), axis_spans(width, side));
+    for &(y0, h, core_y) in &ys {
+        for &(x0, w, core_x) in &xs {
             out.push(Tile {
                 x0,
                 y0,
@@ -131,14 +116,48 @@ pub fn tiles(width: usize, height: usize) -> Vec<Tile> {
     out
 }
 
+/// `(start, length, owned core)` of each tile along one axis of length `len`, tiles at most
+/// `max_side` long.
+fn axis_spans(len: usize, max_side: usize) -> Vec<(usize, usize, (usize, usize))> {
+    if len <= max_side {
+        return vec![(0, len, (0, len))];
+    }
+    let inner = len - 2 * TILE_MARGIN;
+    let count = inner.div_ceil(max_side - 2 * TILE_MARGIN);
+    let core = inner.div_ceil(count);
+    // Network inputs are multiples of 4 where possible.
+    let side = ((core + 2 * TILE_MARGIN).div_ceil(4) * 4).min(len);
+    (0..count)
+        .map(|k| {
+            let nominal = TILE_MARGIN + k * core;
+            let core_start = if k == 0 { 0 } else { nominal };
+            let core_end = if k + 1 == count { len } else { nominal + core };
+            let start = (nominal - TILE_MARGIN).min(len - side);
+            (start, side, (core_start, core_end))
+        })
+        .collect()
+}
+
 #[cfg(test)]
 mod tests {
     use super::*;
 
     #[test]
     fn tile_cores_partition_the_input_and_keep_a_margin() {
-        for (w, h) in [(2048, 2048), (1000, 700), (3000, 513), (900, 300)] {
-            let tiles = tiles(w, h);
+        for (w, h) in [
+            (2048, 2048),
+            (1000, 700),
+            (3000, 1025),
+            (5000, 300),
+            (1030, 1030),
+        ] {
+            let tiles = tiles(w, h, 200_000);
+            assert!(tiles.iter().all(|t| t.width <= 444 && t.height <= 444));
+            assert!(
+                tiles
+                    .iter()
+                    .all(|t| (t.width, t.height) == (tiles[0].width, tiles[0].height))
+            );
             let mut owner = vec![0u8; w * h];
             for t in &tiles {
                 assert!(t.x0 + t.width <= w && t.y0 + t.height <= h);

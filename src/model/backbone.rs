@@ -4,12 +4,12 @@
 //! Details that change the numbers and are easy to get wrong: LayerNorm eps is 1e-6, GELU is the
 //! exact erf form, and GRN sums over the *whole* feature map (so features depend on image size).
 
+use burn::module::Param;
 use burn::nn::conv::{Conv2d, Conv2dConfig};
 use burn::nn::{
     BatchNorm, BatchNormConfig, Gelu, LayerNorm, LayerNormConfig, Linear, LinearConfig,
     PaddingConfig2d,
 };
-use burn::module::Param;
 use burn::prelude::*;
 
 /// ConvNeXt LayerNorm epsilon (timm default for ConvNeXt-V2).
@@ -121,8 +121,13 @@ impl ConvNextBlock {
     pub fn forward(&self, x: Tensor<4>) -> Tensor<4> {
         let y = self.conv_dw.forward(x.clone()); // [b, 96, h, w]
         let y = self.norm.forward(y.permute([0, 2, 3, 1])); // [b, h, w, 96]
-        let y = self.activation.forward(self.fc1.forward(y)); // [b, h, w, 384]
-        let y = self.grn.forward(y);
+        let y = self.fc1.forward(y); // [b, h, w, 384]
+        let y = if y.device().is_autodiff() {
+            self.grn.forward(self.activation.forward(y))
+        } else {
+            // Same function, two passes instead of many (see `fused`).
+            super::fused::gelu_grn(y, self.grn.weight.val(), self.grn.bias.val(), GRN_EPS)
+        };
         let y = self.fc2.forward(y); // [b, h, w, 96]
         x + y.permute([0, 3, 1, 2])
     }

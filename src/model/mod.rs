@@ -5,6 +5,8 @@
 mod backbone;
 mod cost;
 mod device;
+mod fused;
+pub use fused::gelu_grn;
 mod tdcm;
 mod weights;
 
@@ -13,9 +15,8 @@ pub use cost::multiply_adds;
 pub use device::{DeviceError, available_backends, select_device};
 pub use tdcm::{
     Decoder, HEAD_SCALE_MAX, HEAD_SCALE_MIN, Head, Heads, MatchMaps, SearchMatcher, SearchTrace,
-    TEMPLATE_GRID, TemplateEncoder, Tdcm, TdcmConfig, depthwise_correlation,
+    TEMPLATE_GRID, Tdcm, TdcmConfig, TemplateEncoder, depthwise_correlation,
 };
 pub use weights::{
-    LoadError, PYTORCH_KEY_MAP, WeightsFormat, load_weights, load_weights_from_bytes,
-    save_weights,
+    LoadError, PYTORCH_KEY_MAP, WeightsFormat, load_weights, load_weights_from_bytes, save_weights,
 };

@@ -79,16 +79,26 @@ impl TemplateEncoder {
 /// The five output maps at the search image's resolution (`4*floor(H/4)` x `4*floor(W/4)`).
 #[derive(Debug, Clone)]
 pub struct MatchMaps {
-    /// Object-centre heatmap in (0, 1). `[batch, 1, H, W]`
-    pub score: Tensor<4>,
-    /// Probability that the rotation angle is positive. `[batch, 1, H, W]`
-    pub sign: Tensor<4>,
-    /// Cosine of the rotation angle in (-1, 1). `[batch, 1, H, W]`
-    pub cos: Tensor<4>,
-    /// Object width / network template grid, in (0.5, 2). `[batch, 1, H, W]`
-    pub scale_x: Tensor<4>,
-    /// Object height / network template grid, in (0.5, 2). `[batch, 1, H, W]`
-    pub scale_y: Tensor<4>,
+    /// `[batch, 5, H, W]`, channels:
+    /// 0. score: object-centre heatmap in (0, 1);
+    /// 1. sign: probability that the rotation angle is positive;
+    /// 2. cos: cosine of the rotation angle in (-1, 1);
+    /// 3. scale_x: object width / network template grid, in (0.5, 2);
+    /// 4. scale_y: object height / network template grid, in (0.5, 2).
+    pub stacked: Tensor<4>,
+}
+
+impl MatchMaps {
+    /// Channel order of [`MatchMaps::stacked`].
+    pub const CHANNELS: [&'static str; 5] = ["score", "sign", "cos", "scale_x", "scale_y"];
+
+    /// One map, `[batch, 1, H, W]`, by its index in [`MatchMaps::CHANNELS`].
+    pub fn channel(&self, index: usize) -> Tensor<4> {
+        let [b, _, h, w] = self.stacked.dims();
+        self.stacked
+            .clone()
+            .slice([0..b, index..index + 1, 0..h, 0..w])
+    }
 }
 
 /// Every intermediate tensor the parity fixtures store.
@@ -147,7 +157,11 @@ impl SearchMatcher {
         self.decode(correlation).0
     }
 
-    pub fn forward_traced(&self, images: Tensor<4>, kernels: Tensor<4>) -> (MatchMaps, SearchTrace) {
+    pub fn forward_traced(
+        &self,
+        images: Tensor<4>,
+        kernels: Tensor<4>,
+    ) -> (MatchMaps, SearchTrace) {
         let (features, backbone) = self.backbone.forward_traced(images);
         let correlation = depthwise_correlation(features.clone(), kernels);
         let (maps, (fusion, bn1, bn2)) = self.decode(correlation.clone());
@@ -165,7 +179,10 @@ impl SearchMatcher {
     fn decode(&self, correlation: Tensor<4>) -> (MatchMaps, (Tensor<4>, Tensor<4>, Tensor<4>)) {
         let fusion = self.fusion.forward(correlation); // [b, 96, h, w]
         let (x, bn1, bn2) = self.decoder.forward(fusion.clone()); // [b, 24, 4h, 4w]
-        (self.heads.forward(x), (fusion, bn1, bn2))
+        let maps = MatchMaps {
+            stacked: self.heads.forward(x),
+        };
+        (maps, (fusion, bn1, bn2))
     }
 }
 
@@ -214,7 +231,8 @@ impl Decoder {
     }
 }
 
-/// One prediction head: conv3x3 → ReLU → conv1x1, before its output function.
+/// One prediction head's weights: conv3x3 → ReLU → conv1x1, then its output function. The five
+/// heads run together in [`Heads::forward`].
 #[derive(Module, Debug)]
 pub struct Head {
     pub conv3x3: Conv2d,
@@ -229,11 +247,6 @@ impl Head {
                 .init(device),
             conv1x1: Conv2dConfig::new([hidden, 1], [1, 1]).init(device),
         }
-    }
-
-    /// Raw logits. `[b, 24, H, W]` → `[b, 1, H, W]`
-    fn forward(&self, x: Tensor<4>) -> Tensor<4> {
-        self.conv1x1.forward(relu(self.conv3x3.forward(x)))
     }
 }
 
@@ -258,16 +271,59 @@ impl Heads {
         }
     }
 
-    fn forward(&self, x: Tensor<4>) -> MatchMaps {
-        let scale = |logits: Tensor<4>| {
-            sigmoid(logits) * (HEAD_SCALE_MAX - HEAD_SCALE_MIN) + HEAD_SCALE_MIN
-        };
-        MatchMaps {
-            score: sigmoid(self.score.forward(x.clone())),
-            sign: sigmoid(self.sign.forward(x.clone())),
-            cos: tanh(self.cos.forward(x.clone())),
-            scale_x: scale(self.scale_x.forward(x.clone())),
-            scale_y: scale(self.scale_y.forward(x)),
-        }
+    /// All five heads as one conv3x3 (24 → 60) and one grouped conv1x1 (60 → 5): the same
+    /// function as five separate heads, but the 3x3 convolution reads its full-resolution input
+    /// once instead of five times.
+    ///
+    /// # Shapes
+    /// - `x`: `[batch, 24, H, W]`
+    /// - output: `[batch, 5, H, W]`, channels in [`MatchMaps::CHANNELS`] order, output functions
+    ///   applied
+    pub fn forward(&self, x: Tensor<4>) -> Tensor<4> {
+        let heads = [
+            &self.score,
+            &self.sign,
+            &self.cos,
+            &self.scale_x,
+            &self.scale_y,
+        ];
+        let w3 = Tensor::cat(heads.iter().map(|h| h.conv3x3.weight.val()).collect(), 0);
+        let b3 = Tensor::cat(
+            heads
+                .iter()
+                .map(|h| h.conv3x3.bias.as_ref().expect("heads have biases").val())
+                .collect(),
+            0,
+        );
+        let w1 = Tensor::cat(heads.iter().map(|h| h.conv1x1.weight.val()).collect(), 0);
+        let b1 = Tensor::cat(
+            heads
+                .iter()
+                .map(|h| h.conv1x1.bias.as_ref().expect("heads have biases").val())
+                .collect(),
+            0,
+        );
+        let x = relu(conv2d(
+            x,
+            w3,
+            Some(b3),
+            ConvOptions::new([1, 1], [1, 1], [1, 1], 1),
+        )); // [b, 60, H, W]
+        let logits = conv2d(
+            x,
+            w1,
+            Some(b1),
+            ConvOptions::new([1, 1], [0, 0], [1, 1], heads.len()),
+        ); // [b, 5, H, W]
+        let [b, _, h, w] = logits.dims();
+        let probabilities = sigmoid(logits.clone()); // score, sign, scale_x, scale_y
+        let cos = tanh(logits.slice([0..b, 2..3, 0..h, 0..w]));
+        let scales = probabilities.clone().slice([0..b, 3..5, 0..h, 0..w])
+            * (HEAD_SCALE_MAX - HEAD_SCALE_MIN)
+            + HEAD_SCALE_MIN;
+        Tensor::cat(
+            vec![probabilities.slice([0..b, 0..2, 0..h, 0..w]), cos, scales],
+            1,
+        )
     }
 }

@@ -42,8 +42,14 @@ pub const PYTORCH_KEY_MAP: &[(&str, &str)] = &[
     (r"\.mlp\.(fc1|grn|fc2)\.", ".$1."),
     (r"^pointwise_conv\.", "search_matcher.fusion."),
     (r"^(conv1|bn1|conv2|bn2)\.", "search_matcher.decoder.$1."),
-    (r"^conv_(score|sign|cos|scale_x|scale_y)\.0\.", "search_matcher.heads.$1.conv3x3."),
-    (r"^conv_(score|sign|cos|scale_x|scale_y)\.2\.", "search_matcher.heads.$1.conv1x1."),
+    (
+        r"^conv_(score|sign|cos|scale_x|scale_y)\.0\.",
+        "search_matcher.heads.$1.conv3x3.",
+    ),
+    (
+        r"^conv_(score|sign|cos|scale_x|scale_y)\.2\.",
+        "search_matcher.heads.$1.conv1x1.",
+    ),
 ];
 
 /// Why weights could not be loaded. Every variant says which file and, where it applies, which
@@ -52,9 +58,7 @@ pub const PYTORCH_KEY_MAP: &[(&str, &str)] = &[
 pub enum LoadError {
     #[error("weights file {path}: {message}")]
     Unreadable { path: PathBuf, message: String },
-    #[error(
-        "weights {source_name} do not fit the TDCM architecture: tensor `{tensor}`: {problem}"
-    )]
+    #[error("weights {source_name} do not fit the TDCM architecture: tensor `{tensor}`: {problem}")]
     Mismatch {
         source_name: String,
         tensor: String,
@@ -188,20 +192,18 @@ fn check_complete(result: &ApplyResult, source_name: &str) -> Result<(), LoadErr
                 found,
             } => mismatch(
                 path,
-                format!(
-                    "expected shape {:?}, the file has {:?}",
-                    expected,
-                    found
-                ),
+                format!("expected shape {:?}, the file has {:?}", expected, found),
             ),
             ApplyError::DTypeMismatch {
                 path,
                 expected,
                 found,
-            } => mismatch(path, format!("expected {expected:?}, the file has {found:?}")),
-            ApplyError::AdapterError { path, message } | ApplyError::LoadError { path, message } => {
-                mismatch(path, message.clone())
-            }
+            } => mismatch(
+                path,
+                format!("expected {expected:?}, the file has {found:?}"),
+            ),
+            ApplyError::AdapterError { path, message }
+            | ApplyError::LoadError { path, message } => mismatch(path, message.clone()),
         });
     }
     if let Some((path, _)) = result.missing.first() {

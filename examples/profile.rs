@@ -1,0 +1,157 @@
+//! Where the time of one 224x224 search forward goes, stage by stage (each stage forced to
+//! finish by reading its output back). `cargo run --release --example profile [batch]`
+
+use std::time::Instant;
+
+use burn::prelude::*;
+use burn::tensor::Distribution;
+use posematch::model::{TdcmConfig, depthwise_correlation, select_device};
+
+fn time<F: FnMut() -> Tensor<4>>(name: &str, runs: usize, mut f: F) -> Tensor<4> {
+    let mut out = f();
+    let _ = out.to_data();
+    let start = Instant::now();
+    for _ in 0..runs {
+        out = f();
+        let _ = out.to_data();
+    }
+    println!(
+        "{name:28} {:8.2} ms",
+        start.elapsed().as_secs_f64() * 1e3 / runs as f64
+    );
+    out
+}
+
+fn main() {
+    let batch: usize = std::env::args().nth(1).map_or(1, |s| s.parse().unwrap());
+    let device = select_device().unwrap();
+    let model = TdcmConfig::new().init(&device);
+    let m = &model.search_matcher;
+    let runs = 10;
+    let images = Tensor::<4>::random(
+        [batch, 3, 224, 224],
+        Distribution::Normal(0.0, 1.0),
+        &device,
+    );
+    let template = Tensor::<4>::random([batch, 3, 36, 36], Distribution::Normal(0.0, 1.0), &device);
+    let kernels = time("template encoder", runs, || {
+        model.template_encoder.forward(template.clone())
+    });
+    let b = &m.backbone;
+    let x = time("stem conv", runs, || b.stem_conv.forward(images.clone()));
+    let x = time("stem norm (permute+LN)", runs, || {
+        b.stem_norm
+            .forward(x.clone().permute([0, 2, 3, 1]))
+            .permute([0, 3, 1, 2])
+    });
+    let mut y = x.clone();
+    for (i, block) in b.blocks.iter().enumerate() {
+        let input = y.clone();
+        let d = time(&format!("block{i} dwconv7x7"), runs, || {
+            block.conv_dw.forward(input.clone())
+        });
+        let n = time(&format!("block{i} permute+LN"), runs, || {
+            block.norm.forward(d.clone().permute([0, 2, 3, 1]))
+        });
+        let f1 = time(&format!("block{i} fc1"), runs, || {
+            block.fc1.forward(n.clone())
+        });
+        let g = time(&format!("block{i} gelu"), runs, || {
+            block.activation.forward(f1.clone())
+        });
+        let r = time(&format!("block{i} grn"), runs, || {
+            block.grn.forward(g.clone())
+        });
+        let _ = time(&format!("block{i} fused gelu+grn"), runs, || {
+            posematch::model::gelu_grn(
+                f1.clone(),
+                block.grn.weight.val(),
+                block.grn.bias.val(),
+                1e-6,
+            )
+        });
+        let f2 = time(&format!("block{i} fc2"), runs, || {
+            block.fc2.forward(r.clone())
+        });
+        y = time(&format!("block{i} permute+residual"), runs, || {
+            input.clone() + f2.clone().permute([0, 3, 1, 2])
+        });
+    }
+    let features = time("batch norm", runs, || b.norm.forward(y.clone()));
+    let corr = time("correlation", runs, || {
+        depthwise_correlation(features.clone(), kernels.clone())
+    });
+    let fusion = time("fusion conv3x3", runs, || m.fusion.forward(corr.clone()));
+    let d = &m.decoder;
+    let c1 = time("conv1+bn1", runs, || {
+        d.bn1.forward(d.conv1.forward(fusion.clone()))
+    });
+    let s1 = time("relu+shuffle", runs, || {
+        d.shuffle
+            .forward(burn::tensor::activation::relu(c1.clone()))
+    });
+    let c2 = time("conv2+bn2", runs, || {
+        d.bn2.forward(d.conv2.forward(s1.clone()))
+    });
+    let s2 = time("relu+shuffle", runs, || {
+        d.shuffle
+            .forward(burn::tensor::activation::relu(c2.clone()))
+    });
+    let _ = time("one head", runs, || {
+        m.heads
+            .score
+            .conv1x1
+            .forward(burn::tensor::activation::relu(
+                m.heads.score.conv3x3.forward(s2.clone()),
+            ))
+    });
+    let _ = time("fused heads", runs, || m.heads.forward(s2.clone()));
+    {
+        use burn::tensor::module::conv2d;
+        use burn::tensor::ops::ConvOptions;
+        let w3 = Tensor::<4>::random([60, 24, 3, 3], Distribution::Normal(0.0, 0.1), &device);
+        let b3 = Tensor::<1>::zeros([60], &device);
+        let h = time("heads conv3x3 24->60", runs, || {
+            conv2d(
+                s2.clone(),
+                w3.clone(),
+                Some(b3.clone()),
+                ConvOptions::new([1, 1], [1, 1], [1, 1], 1),
+            )
+        });
+        let r = time("heads relu", runs, || {
+            burn::tensor::activation::relu(h.clone())
+        });
+        let w1 = Tensor::<4>::random([5, 12, 1, 1], Distribution::Normal(0.0, 0.1), &device);
+        let b1 = Tensor::<1>::zeros([5], &device);
+        let _ = time("heads grouped 1x1", runs, || {
+            conv2d(
+                r.clone(),
+                w1.clone(),
+                Some(b1.clone()),
+                ConvOptions::new([1, 1], [0, 0], [1, 1], 5),
+            )
+        });
+        let w1d = Tensor::<4>::random([5, 60, 1, 1], Distribution::Normal(0.0, 0.1), &device);
+        let _ = time("heads dense 1x1 60->5", runs, || {
+            conv2d(
+                r.clone(),
+                w1d.clone(),
+                Some(b1.clone()),
+                ConvOptions::new([1, 1], [0, 0], [1, 1], 1),
+            )
+        });
+        let c2w = Tensor::<4>::random([96, 48, 3, 3], Distribution::Normal(0.0, 0.1), &device);
+        let _ = time("conv2 alone", runs, || {
+            conv2d(
+                s1.clone(),
+                c2w.clone(),
+                None,
+                ConvOptions::new([1, 1], [1, 1], [1, 1], 1),
+            )
+        });
+    }
+    let _ = time("whole search forward", runs, || {
+        m.forward(images.clone(), kernels.clone()).stacked
+    });
+}
