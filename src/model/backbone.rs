@@ -122,11 +122,11 @@ impl ConvNextBlock {
         let y = self.conv_dw.forward(x.clone()); // [b, 96, h, w]
         let y = self.norm.forward(y.permute([0, 2, 3, 1])); // [b, h, w, 96]
         let y = self.fc1.forward(y); // [b, h, w, 384]
-        let y = if y.device().is_autodiff() {
-            self.grn.forward(self.activation.forward(y))
-        } else {
+        let y = if super::device::runs_on_host_cpu(&y.device()) {
             // Same function, two passes instead of many (see `fused`).
             super::fused::gelu_grn(y, self.grn.weight.val(), self.grn.bias.val(), GRN_EPS)
+        } else {
+            self.grn.forward(self.activation.forward(y))
         };
         let y = self.fc2.forward(y); // [b, h, w, 96]
         x + y.permute([0, 3, 1, 2])

@@ -44,3 +44,20 @@ fn device_by_name(name: &str) -> Result<Device, DeviceError> {
         }),
     }
 }
+
+/// Whether tensors on `device` live in host memory without autodiff, so that the fused CPU
+/// inference kernels (`fused`, `cpu_decoder`) may read and write them directly.
+pub(crate) fn runs_on_host_cpu(device: &Device) -> bool {
+    if device.is_autodiff() {
+        return false;
+    }
+    #[cfg(feature = "flex")]
+    if *device == Device::flex() {
+        return true;
+    }
+    #[cfg(feature = "ndarray")]
+    if *device == Device::ndarray() {
+        return true;
+    }
+    false
+}

@@ -4,6 +4,7 @@
 
 mod backbone;
 mod cost;
+mod cpu_decoder;
 mod device;
 mod fused;
 pub use fused::gelu_grn;

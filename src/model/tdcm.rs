@@ -154,6 +154,10 @@ impl SearchMatcher {
     pub fn forward(&self, images: Tensor<4>, kernels: Tensor<4>) -> MatchMaps {
         let features = self.backbone.forward(images);
         let correlation = depthwise_correlation(features, kernels);
+        if super::device::runs_on_host_cpu(&correlation.device()) {
+            let stacked = super::cpu_decoder::decode(self, correlation, false).0;
+            return MatchMaps { stacked };
+        }
         self.decode(correlation).0
     }
 
@@ -177,6 +181,11 @@ impl SearchMatcher {
     }
 
     fn decode(&self, correlation: Tensor<4>) -> (MatchMaps, (Tensor<4>, Tensor<4>, Tensor<4>)) {
+        if super::device::runs_on_host_cpu(&correlation.device()) {
+            let (stacked, trace) = super::cpu_decoder::decode(self, correlation, true);
+            let trace = trace.expect("trace requested");
+            return (MatchMaps { stacked }, (trace.fusion, trace.bn1, trace.bn2));
+        }
         let fusion = self.fusion.forward(correlation); // [b, 96, h, w]
         let (x, bn1, bn2) = self.decoder.forward(fusion.clone()); // [b, 24, 4h, 4w]
         let maps = MatchMaps {
@@ -261,6 +270,17 @@ pub struct Heads {
 }
 
 impl Heads {
+    /// The heads in [`MatchMaps::CHANNELS`] order.
+    pub fn all(&self) -> [&Head; 5] {
+        [
+            &self.score,
+            &self.sign,
+            &self.cos,
+            &self.scale_x,
+            &self.scale_y,
+        ]
+    }
+
     fn new(channels: usize, hidden: usize, device: &Device) -> Self {
         Self {
             score: Head::new(channels, hidden, device),

@@ -1,0 +1,355 @@
+//! The decoder and heads for inference on the host CPU, channels-last from start to finish.
+//!
+//! Same function as [`super::Decoder`] + [`super::Heads`] (the parity fixtures check this path),
+//! computed differently: BatchNorm folded into the preceding convolution, every 3x3 convolution
+//! as a row-chunked im2col (each chunk fits in L2) times one matrix through the `gemm` crate, chunks
+//! in parallel, pixel shuffles as plain gathers, and the five heads' 1x1 convolutions and output
+//! functions applied to each chunk while it is still in cache. burn's generic convolution converts
+//! NCHW↔NHWC around every layer and builds the whole im2col matrix at once; on the two-core target
+//! machine this path is about twice as fast. Training keeps burn's modules (autodiff).
+
+use burn::prelude::*;
+use rayon::prelude::*;
+
+use super::tdcm::{HEAD_SCALE_MAX, HEAD_SCALE_MIN, Heads, SearchMatcher};
+use burn::nn::BatchNorm;
+use burn::nn::conv::Conv2d;
+
+/// Bytes of im2col buffer per parallel chunk: well inside a 1 MB L2.
+const CHUNK_BYTES: usize = 384 * 1024;
+
+/// A 3x3 convolution (padding 1) as an im2col weight matrix.
+struct Conv3x3 {
+    cin: usize,
+    cout: usize,
+    /// `[9 * cin, cout]`, row `(ky * 3 + kx) * cin + ci`.
+    matrix: Vec<f32>,
+    bias: Vec<f32>,
+}
+
+fn values(t: Tensor<1>) -> Vec<f32> {
+    t.into_data()
+        .try_into_vec()
+        .expect("parameters are f32; this is a bug")
+}
+
+impl Conv3x3 {
+    /// From a burn conv, with an optional BatchNorm (inference statistics) folded in.
+    fn new(conv: &Conv2d, norm: Option<&BatchNorm>) -> Self {
+        Self::from_parts(conv.weight.val(), conv.bias.as_ref().map(|b| b.val()), norm)
+    }
+
+    fn from_parts(weight: Tensor<4>, bias: Option<Tensor<1>>, norm: Option<&BatchNorm>) -> Self {
+        let [cout, cin, kh, kw] = weight.dims();
+        assert!(
+            kh == 3 && kw == 3,
+            "3x3 convolution expected; this is a bug"
+        );
+        let w: Vec<f32> = weight
+            .into_data()
+            .try_into_vec()
+            .expect("parameters are f32; this is a bug");
+        let mut bias = bias.map_or(vec![0.0; cout], values);
+        let mut scale = vec![1.0f32; cout];
+        if let Some(bn) = norm {
+            let (gamma, beta) = (values(bn.gamma.val()), values(bn.beta.val()));
+            let (mean, var) = (
+                values(bn.running_mean.value()),
+                values(bn.running_var.value()),
+            );
+            for co in 0..cout {
+                let s = gamma[co] / (var[co] as f64 + bn.epsilon).sqrt() as f32;
+                scale[co] = s;
+                bias[co] = (bias[co] - mean[co]) * s + beta[co];
+            }
+        }
+        let mut matrix = vec![0f32; 9 * cin * cout];
+        for co in 0..cout {
+            for ci in 0..cin {
+                for k in 0..9 {
+                    matrix[(k * cin + ci) * cout + co] = w[(co * cin + ci) * 9 + k] * scale[co];
+                }
+            }
+        }
+        Self {
+            cin,
+            cout,
+            matrix,
+            bias,
+        }
+    }
+
+    /// Rows per chunk for an image `width` wide.
+    fn chunk_rows(&self, width: usize) -> usize {
+        (CHUNK_BYTES / (width * 9 * self.cin * 4)).max(1)
+    }
+
+    /// Fills `patches` (`[rows * width, 9 * cin]`) for output rows `y0..y0 + rows`.
+    fn im2col(
+        &self,
+        input: &[f32],
+        height: usize,
+        width: usize,
+        y0: usize,
+        rows: usize,
+        patches: &mut [f32],
+    ) {
+        let cin = self.cin;
+        let row_len = 9 * cin;
+        for (p, patch) in patches
+            .chunks_exact_mut(row_len)
+            .take(rows * width)
+            .enumerate()
+        {
+            let (y, x) = (y0 + p / width, p % width);
+            for ky in 0..3 {
+                let sy = y as isize + ky as isize - 1;
+                for kx in 0..3 {
+                    let sx = x as isize + kx as isize - 1;
+                    let dst = &mut patch[(ky * 3 + kx) * cin..(ky * 3 + kx + 1) * cin];
+                    if sy < 0 || sy >= height as isize || sx < 0 || sx >= width as isize {
+                        dst.fill(0.0);
+                    } else {
+                        let src = (sy as usize * width + sx as usize) * cin;
+                        dst.copy_from_slice(&input[src..src + cin]);
+                    }
+                }
+            }
+        }
+    }
+
+    /// `out[rows * width, cout] = patches · matrix + bias`.
+    fn multiply(&self, patches: &[f32], pixels: usize, out: &mut [f32]) {
+        let (k, n) = (9 * self.cin, self.cout);
+        assert!(
+            patches.len() >= pixels * k && out.len() >= pixels * n && self.matrix.len() == k * n
+        );
+        for row in out.chunks_exact_mut(n).take(pixels) {
+            row.copy_from_slice(&self.bias);
+        }
+        // SAFETY: the three buffers are distinct, row-major and at least as large as the
+        // dimensions passed (asserted above); gemm reads lhs/rhs and writes dst within them.
+        unsafe {
+            gemm::gemm(
+                pixels,
+                n,
+                k,
+                out.as_mut_ptr(),
+                1,
+                n as isize,
+                true,
+                patches.as_ptr(),
+                1,
+                k as isize,
+                self.matrix.as_ptr(),
+                1,
+                n as isize,
+                1.0,
+                1.0,
+                false,
+                false,
+                false,
+                gemm::Parallelism::None,
+            );
+        }
+    }
+
+    /// The convolution over a whole channels-last image: `[h * w, cin]` → `[h * w, cout]`.
+    fn forward(&self, input: &[f32], height: usize, width: usize) -> Vec<f32> {
+        let rows = self.chunk_rows(width);
+        let mut out = vec![0f32; height * width * self.cout];
+        out.par_chunks_mut(rows * width * self.cout)
+            .enumerate()
+            .for_each_init(
+                || vec![0f32; rows * width * 9 * self.cin],
+                |patches, (chunk, out)| {
+                    let y0 = chunk * rows;
+                    let n = (height - y0).min(rows);
+                    self.im2col(input, height, width, y0, n, patches);
+                    self.multiply(patches, n * width, out);
+                },
+            );
+        out
+    }
+}
+
+fn relu_in_place(values: &mut [f32]) {
+    values.iter_mut().for_each(|v| *v = v.max(0.0));
+}
+
+/// PixelShuffle(2) channels-last: `[h, w, 4c]` → `[2h, 2w, c]`,
+/// `out[2y + i, 2x + j, ch] = in[y, x, 4ch + 2i + j]`.
+fn pixel_shuffle(input: &[f32], height: usize, width: usize, channels_in: usize) -> Vec<f32> {
+    let c = channels_in / 4;
+    let mut out = vec![0f32; input.len()];
+    out.par_chunks_mut(2 * width * c)
+        .enumerate()
+        .for_each(|(oy, row)| {
+            let (y, i) = (oy / 2, oy % 2);
+            for ox in 0..2 * width {
+                let (x, j) = (ox / 2, ox % 2);
+                let src = &input[(y * width + x) * channels_in..(y * width + x + 1) * channels_in];
+                let dst = &mut row[ox * c..(ox + 1) * c];
+                for (ch, d) in dst.iter_mut().enumerate() {
+                    *d = src[4 * ch + 2 * i + j];
+                }
+            }
+        });
+    out
+}
+
+/// The five heads: a 3x3 conv 24 → 5·12, ReLU, per-head 1x1 conv 12 → 1, output functions.
+struct HeadsCpu {
+    hidden: Conv3x3,
+    /// `[5][12]` weights and `[5]` biases of the 1x1 convolutions.
+    output_weight: Vec<[f32; 12]>,
+    output_bias: Vec<f32>,
+}
+
+impl HeadsCpu {
+    fn new(heads: &Heads) -> Self {
+        let all = heads.all();
+        // Stack the five hidden convs as one with 60 outputs (cat of weights along cout).
+        let weight = Tensor::cat(all.iter().map(|h| h.conv3x3.weight.val()).collect(), 0);
+        let bias = Tensor::cat(
+            all.iter()
+                .map(|h| h.conv3x3.bias.as_ref().expect("heads have biases").val())
+                .collect(),
+            0,
+        );
+        let hidden = Conv3x3::from_parts(weight, Some(bias), None);
+        let mut output_weight = Vec::new();
+        let mut output_bias = Vec::new();
+        for h in all {
+            let w = values(h.conv1x1.weight.val().reshape([12]));
+            output_weight.push(w.try_into().expect("12 hidden channels per head"));
+            output_bias.push(values(h.conv1x1.bias.as_ref().expect("heads have biases").val())[0]);
+        }
+        Self {
+            hidden,
+            output_weight,
+            output_bias,
+        }
+    }
+
+    /// `[h * w, 24]` → `[5, h * w]` planes (score, sign, cos, scale_x, scale_y).
+    fn forward(&self, input: &[f32], height: usize, width: usize) -> Vec<f32> {
+        let rows = self.hidden.chunk_rows(width);
+        let hidden = self.hidden.cout;
+        let mut pixel_major = vec![0f32; height * width * 5];
+        pixel_major
+            .par_chunks_mut(rows * width * 5)
+            .enumerate()
+            .for_each_init(
+                || {
+                    (
+                        vec![0f32; rows * width * 9 * self.hidden.cin],
+                        vec![0f32; rows * width * hidden],
+                    )
+                },
+                |(patches, features), (chunk, out)| {
+                    let y0 = chunk * rows;
+                    let n = (height - y0).min(rows);
+                    self.hidden.im2col(input, height, width, y0, n, patches);
+                    self.hidden.multiply(patches, n * width, features);
+                    for (f, o) in features
+                        .chunks_exact(hidden)
+                        .zip(out.chunks_exact_mut(5))
+                        .take(n * width)
+                    {
+                        for head in 0..5 {
+                            let mut logit = self.output_bias[head];
+                            for (v, w) in f[head * 12..head * 12 + 12]
+                                .iter()
+                                .zip(&self.output_weight[head])
+                            {
+                                logit += v.max(0.0) * w;
+                            }
+                            o[head] = match head {
+                                2 => logit.tanh(),
+                                0 | 1 => sigmoid(logit),
+                                _ => {
+                                    sigmoid(logit) * (HEAD_SCALE_MAX - HEAD_SCALE_MIN)
+                                        + HEAD_SCALE_MIN
+                                }
+                            };
+                        }
+                    }
+                },
+            );
+        let pixels = height * width;
+        let mut planes = vec![0f32; 5 * pixels];
+        for (p, o) in pixel_major.chunks_exact(5).enumerate() {
+            for head in 0..5 {
+                planes[head * pixels + p] = o[head];
+            }
+        }
+        planes
+    }
+}
+
+fn sigmoid(x: f32) -> f32 {
+    1.0 / (1.0 + (-x).exp())
+}
+
+/// Pre-activation intermediates, for the parity fixtures.
+pub struct CpuTrace {
+    pub fusion: Tensor<4>,
+    pub bn1: Tensor<4>,
+    pub bn2: Tensor<4>,
+}
+
+fn nchw_tensor(nhwc: &[Vec<f32>], h: usize, w: usize, c: usize, device: &Device) -> Tensor<4> {
+    let data: Vec<f32> = nhwc.iter().flatten().copied().collect();
+    Tensor::<4>::from_data(TensorData::new(data, [nhwc.len(), h, w, c]), device)
+        .permute([0, 3, 1, 2])
+}
+
+/// Decoder + heads on the host CPU.
+///
+/// # Shapes
+/// - `correlation`: `[batch, 96, h, w]`
+/// - output: `[batch, 5, 4h, 4w]` maps, and the intermediates when `trace`
+pub fn decode(
+    matcher: &SearchMatcher,
+    correlation: Tensor<4>,
+    trace: bool,
+) -> (Tensor<4>, Option<CpuTrace>) {
+    let device = correlation.device();
+    let [b, c, h, w] = correlation.dims();
+    let fusion = Conv3x3::new(&matcher.fusion, None);
+    let conv1 = Conv3x3::new(&matcher.decoder.conv1, Some(&matcher.decoder.bn1));
+    let conv2 = Conv3x3::new(&matcher.decoder.conv2, Some(&matcher.decoder.bn2));
+    let heads = HeadsCpu::new(&matcher.heads);
+    let input: Vec<f32> = correlation
+        .permute([0, 2, 3, 1])
+        .into_data()
+        .try_into_vec()
+        .expect("activations are f32; this is a bug");
+    let mut maps = Vec::with_capacity(b * 5 * 16 * h * w);
+    let (mut fusions, mut bn1s, mut bn2s) = (Vec::new(), Vec::new(), Vec::new());
+    for sample in input.chunks_exact(h * w * c) {
+        let fused = fusion.forward(sample, h, w); // [h, w, 96]
+        let mut x = conv1.forward(&fused, h, w); // [h, w, 192]
+        if trace {
+            fusions.push(fused);
+            bn1s.push(x.clone());
+        }
+        relu_in_place(&mut x);
+        let x = pixel_shuffle(&x, h, w, conv1.cout); // [2h, 2w, 48]
+        let mut x = conv2.forward(&x, 2 * h, 2 * w); // [2h, 2w, 96]
+        if trace {
+            bn2s.push(x.clone());
+        }
+        relu_in_place(&mut x);
+        let x = pixel_shuffle(&x, 2 * h, 2 * w, conv2.cout); // [4h, 4w, 24]
+        maps.extend(heads.forward(&x, 4 * h, 4 * w)); // [5, 4h, 4w]
+    }
+    let maps = Tensor::from_data(TensorData::new(maps, [b, 5, 4 * h, 4 * w]), &device);
+    let trace = trace.then(|| CpuTrace {
+        fusion: nchw_tensor(&fusions, h, w, fusion.cout, &device),
+        bn1: nchw_tensor(&bn1s, h, w, conv1.cout, &device),
+        bn2: nchw_tensor(&bn2s, 2 * h, 2 * w, conv2.cout, &device),
+    });
+    (maps, trace)
+}
