@@ -8,6 +8,10 @@
 //! measured through the same backend, to put GFLOP/s in context.
 
 use std::path::PathBuf;
+
+/// The same allocator as the `posematch` binary, so the figures match what users get.
+#[global_allocator]
+static ALLOCATOR: mimalloc::MiMalloc = mimalloc::MiMalloc;
 use std::time::{Duration, Instant};
 
 use burn::prelude::*;

@@ -1,6 +1,12 @@
-//! Where the time of one 224x224 search forward goes, stage by stage. `cargo run --release --example profile [batch]`
+//! Where the time of one 224x224 search forward goes, stage by stage (burn's generic ops; the
+//! fused CPU paths replace some of them in the real forward).
+//! `cargo run --release --example profile [batch] [--whole]`
 
 use std::time::Instant;
+
+/// As in the binary (see `src/main.rs`).
+#[global_allocator]
+static ALLOCATOR: mimalloc::MiMalloc = mimalloc::MiMalloc;
 
 use burn::prelude::*;
 use burn::tensor::Distribution;
@@ -22,7 +28,10 @@ fn time<F: FnMut() -> Tensor<4>>(name: &str, runs: usize, mut f: F) -> Tensor<4>
 }
 
 fn main() {
-    let batch: usize = std::env::args().nth(1).map_or(1, |s| s.parse().unwrap());
+    // `profile [batch] [--whole]`: `--whole` times only the full forward (for `perf record`).
+    let args: Vec<String> = std::env::args().skip(1).collect();
+    let whole_only = args.iter().any(|a| a == "--whole");
+    let batch: usize = args.iter().find_map(|a| a.parse().ok()).unwrap_or(1);
     let device = select_device().unwrap();
     let model = TdcmConfig::new().init(&device);
     let m = &model.search_matcher;
@@ -36,6 +45,12 @@ fn main() {
     let kernels = time("template encoder", runs, || {
         model.template_encoder.forward(template.clone())
     });
+    if whole_only {
+        let _ = time("whole search forward", 30, || {
+            m.forward(images.clone(), kernels.clone()).stacked
+        });
+        return;
+    }
     let b = &m.backbone;
     let x = time("stem conv", runs, || b.stem_conv.forward(images.clone()));
     let x = time("stem norm (permute+LN)", runs, || {

@@ -177,9 +177,9 @@ fn relu_in_place(values: &mut [f32]) {
     values.iter_mut().for_each(|v| *v = v.max(0.0));
 }
 
-/// PixelShuffle(2) channels-last: `[h, w, 4c]` → `[2h, 2w, c]`,
+/// PixelShuffle(2) channels-last: `[h, w, 4c]` → `[2h, 2w, c]` (rows follow from the length),
 /// `out[2y + i, 2x + j, ch] = in[y, x, 4ch + 2i + j]`.
-fn pixel_shuffle(input: &[f32], height: usize, width: usize, channels_in: usize) -> Vec<f32> {
+fn pixel_shuffle(input: &[f32], width: usize, channels_in: usize) -> Vec<f32> {
     let c = channels_in / 4;
     let mut out = vec![0f32; input.len()];
     out.par_chunks_mut(2 * width * c)
@@ -336,13 +336,13 @@ pub fn decode(
             bn1s.push(x.clone());
         }
         relu_in_place(&mut x);
-        let x = pixel_shuffle(&x, h, w, conv1.cout); // [2h, 2w, 48]
+        let x = pixel_shuffle(&x, w, conv1.cout); // [2h, 2w, 48]
         let mut x = conv2.forward(&x, 2 * h, 2 * w); // [2h, 2w, 96]
         if trace {
             bn2s.push(x.clone());
         }
         relu_in_place(&mut x);
-        let x = pixel_shuffle(&x, 2 * h, 2 * w, conv2.cout); // [4h, 4w, 24]
+        let x = pixel_shuffle(&x, 2 * w, conv2.cout); // [4h, 4w, 24]
         maps.extend(heads.forward(&x, 4 * h, 4 * w)); // [5, 4h, 4w]
     }
     let maps = Tensor::from_data(TensorData::new(maps, [b, 5, 4 * h, 4 * w]), &device);
