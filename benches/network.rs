@@ -1,6 +1,7 @@
 //! Network and pipeline speed: template encode, search forward at 224x224 with a 36x36 template
-//! for batch 1/4/8 (criterion reports time per call; divide by the batch for ms per pair),
-//! decode, and whole 1024x1024 / 2048x2048 frames through the matcher.
+//! for batch 1/4/8 (criterion reports time per call and pairs/s as elem/s; ms per pair is the
+//! time divided by the batch), decode (up to 56 peaks from random-input maps, min_score 0.05),
+//! and 224², 1024² and 2048² frames through the whole matcher.
 //!
 //! Uses the official checkpoint from `../shared/reference` when present (so decode sees real
 //! maps), random weights otherwise (speed does not depend on the values). Before the timings it
@@ -17,6 +18,7 @@ use std::time::{Duration, Instant};
 use burn::prelude::*;
 use criterion::{BenchmarkId, Criterion, Throughput, criterion_group, criterion_main};
 use posematch::imaging::{InputConvention, RgbImage32};
+use posematch::matcher::decode::{MapPlanes, decode_peak, find_peaks};
 use posematch::matcher::{MatchOptions, Matcher};
 use posematch::model::{Tdcm, TdcmConfig, load_weights, multiply_adds, select_device};
 
@@ -112,6 +114,39 @@ fn benches(c: &mut Criterion) {
             },
         );
     }
+    // Decode alone: peaks, sub-pixel centres and parameters from one 224x224 set of maps.
+    let images = Tensor::<4>::random(
+        [1, 3, 224, 224],
+        burn::tensor::Distribution::Normal(0.0, 1.0),
+        &device,
+    );
+    let maps: Vec<f32> = matcher
+        .model()
+        .search_matcher
+        .forward(images, encoded.kernel.clone())
+        .stacked
+        .into_data()
+        .try_into_vec()
+        .unwrap();
+    let n = 224 * 224;
+    let planes = MapPlanes {
+        width: 224,
+        height: 224,
+        score: &maps[..n],
+        sign: &maps[n..2 * n],
+        cos: &maps[2 * n..3 * n],
+        scale_x: &maps[3 * n..4 * n],
+        scale_y: &maps[4 * n..5 * n],
+    };
+    group.throughput(Throughput::Elements(1));
+    group.bench_function("decode_224", |b| {
+        b.iter(|| {
+            find_peaks(&planes, 0.05, 56)
+                .into_iter()
+                .map(|(r, c)| decode_peak(&planes, r, c))
+                .collect::<Vec<_>>()
+        })
+    });
     group.finish();
 
     let mut group = c.benchmark_group("pipeline");

@@ -7,7 +7,7 @@
 use std::path::PathBuf;
 
 use burn::prelude::*;
-use posematch::model::{MatchMaps, Tdcm, available_backends, load_weights};
+use posematch::model::{MatchMaps, Tdcm, available_backends, load_weights, set_fused_cpu_kernels};
 use safetensors::SafeTensors;
 
 fn reference_dir() -> Option<PathBuf> {
@@ -118,15 +118,28 @@ fn network_reproduces_every_fixture_tensor_on_every_backend() {
             "ndarray" => Device::ndarray(),
             _ => Device::flex(),
         };
-        for weights in ["tdcm-official.pth", "tdcm-official.safetensors"] {
-            println!("--- backend {backend}, weights {weights}");
+        // Both weight files, and both inference paths: the fused CPU kernels (what runs in
+        // production on the CPU) and burn's generic modules (what training and GPUs run).
+        for (weights, fused) in [
+            ("tdcm-official.pth", true),
+            ("tdcm-official.safetensors", true),
+            ("tdcm-official.pth", false),
+        ] {
+            set_fused_cpu_kernels(fused);
+            let path = if fused {
+                "fused CPU kernels"
+            } else {
+                "generic burn modules"
+            };
+            println!("--- backend {backend}, weights {weights}, {path}");
             let model = load_weights(&dir.join(weights), &device).expect("official weights load");
             failures.extend(
                 check_backend(&device, &model, &st)
                     .into_iter()
-                    .map(|f| format!("[{backend}, {weights}] {f}")),
+                    .map(|f| format!("[{backend}, {weights}, {path}] {f}")),
             );
         }
+        set_fused_cpu_kernels(true);
     }
     assert!(
         failures.is_empty(),

@@ -13,7 +13,7 @@ mod weights;
 
 pub use backbone::{Backbone, BackboneConfig, BackboneTrace, ConvNextBlock, GlobalResponseNorm};
 pub use cost::multiply_adds;
-pub use device::{DeviceError, available_backends, select_device};
+pub use device::{DeviceError, available_backends, select_device, set_fused_cpu_kernels};
 pub use tdcm::{
     Decoder, HEAD_SCALE_MAX, HEAD_SCALE_MIN, Head, Heads, MatchMaps, SearchMatcher, SearchTrace,
     TEMPLATE_GRID, Tdcm, TdcmConfig, TemplateEncoder, depthwise_correlation,
