@@ -6,7 +6,10 @@
 //! and [`cli`] on top.
 
 pub mod cli;
+pub mod evaluation;
 pub mod geometry;
 pub mod imaging;
 pub mod matcher;
 pub mod model;
+pub mod refine;
+pub mod synth;

@@ -1,6 +1,7 @@
 //! The `posematch` command line: flag parsing and file handling around [`crate::matcher`].
 //! Thin on purpose; every rule about images and poses lives below this layer.
 
+mod eval_cmd;
 mod match_cmd;
 mod overlay;
 
@@ -29,6 +30,8 @@ pub struct Cli {
 pub enum Command {
     /// Match a template in an image (or a JSONL list of pairs) and print the poses as JSON.
     Match(MatchArgs),
+    /// Measure accuracy on generated pairs with exact ground truth (the paper's metrics).
+    Eval(eval_cmd::EvalArgs),
     /// Manage network weights.
     #[command(subcommand)]
     Weights(WeightsCommand),
@@ -134,6 +137,7 @@ pub fn load_model(args: &ModelArgs) -> Result<Matcher, CliError> {
 pub fn run(cli: Cli) -> Result<(), CliError> {
     match cli.command {
         Command::Match(args) => match_cmd::run(args),
+        Command::Eval(args) => eval_cmd::run(args),
         Command::Weights(WeightsCommand::Import { from, out }) => {
             let device = select_device()?;
             let model = load_weights(&from, &device)?;

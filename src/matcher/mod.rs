@@ -6,6 +6,7 @@ pub mod decode;
 pub mod options;
 pub mod plan;
 
+use std::sync::Arc;
 use std::time::Instant;
 
 use burn::prelude::*;
@@ -13,6 +14,7 @@ use burn::prelude::*;
 use crate::geometry::{Pose, rotated_iou};
 use crate::imaging::{InputConvention, RgbImage32, resize_rgb, to_network_input};
 use crate::model::{TEMPLATE_GRID, Tdcm};
+use crate::refine::{GrayImage32, refine_pose};
 use decode::{MapPlanes, decode_peak, find_peaks};
 pub use options::{AngleRange, MatchOptions, ScaleRange};
 use plan::{MAX_NETWORK_PIXELS, MIN_INPUT_SIDE, ScalePass, Tile};
@@ -61,6 +63,8 @@ pub struct EncodedTemplate {
     pub height: u32,
     /// `[1, 96, k, k]` depthwise kernels.
     pub kernel: Tensor<4>,
+    /// The registered template in grey, for refinement.
+    pub gray: Arc<GrayImage32>,
 }
 
 /// One search to run.
@@ -76,6 +80,7 @@ pub struct MatchTimings {
     pub prepare_ms: f64,
     pub network_ms: f64,
     pub decode_ms: f64,
+    pub refine_ms: f64,
 }
 
 /// The answer to one job.
@@ -146,6 +151,7 @@ impl Matcher {
             width: template.width,
             height: template.height,
             kernel,
+            gray: Arc::new(GrayImage32::from_rgb(template)),
         })
     }
 
@@ -219,12 +225,27 @@ impl Matcher {
             }
         }
         decode_ms += ms_since(t);
+        let t = Instant::now();
+        for (index, result) in results.iter_mut().enumerate() {
+            let job = &jobs[index];
+            if let Ok(outcome) = result
+                && job.options.refine
+                && !outcome.poses.is_empty()
+            {
+                let image = GrayImage32::from_rgb(job.image);
+                for pose in &mut outcome.poses {
+                    *pose = refine_pose(&job.template.gray, &image, pose);
+                }
+            }
+        }
+        let refine_ms = ms_since(t);
         let count = results.iter().filter(|r| r.is_ok()).count().max(1) as f64;
         for outcome in results.iter_mut().flatten() {
             outcome.timings = MatchTimings {
                 prepare_ms: prepare_ms / count,
                 network_ms: network_ms / count,
                 decode_ms: decode_ms / count,
+                refine_ms: refine_ms / count,
             };
         }
         results

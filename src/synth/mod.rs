@@ -1,0 +1,338 @@
+//! Synthetic template/search pairs with exact ground truth, from any folder of ordinary photos:
+//! the paper's Algorithm 1 (crop a box, resize it to the template grid, rotate the image about
+//! the box, cut a search window that holds the whole rotated box and no blank border), and a
+//! multi-instance set (rotated, scaled copies of one template pasted with a mask into a 4x4 grid).
+//! Everything is deterministic from a seed: pair `i` depends only on `(seed, i)`.
+
+mod sampler;
+
+use std::path::{Path, PathBuf};
+use std::str::FromStr;
+
+use image::RgbImage;
+use rand::rngs::StdRng;
+use rand::{Rng, SeedableRng};
+
+use crate::geometry::Pose;
+use crate::imaging::{RgbImage32, resize_rgb};
+pub use sampler::{bilinear, warp_search_window};
+
+/// Transformation levels of the paper: rotation always U(−180°, 180°), independent scales in a
+/// range.
+#[derive(Debug, Clone, Copy, PartialEq, Eq)]
+pub enum Level {
+    /// Rotation only.
+    S1,
+    /// Scales in 0.8–1.5.
+    S1_5,
+    /// Scales in 0.5–2.
+    S2,
+    /// Scales in 0.4–2.5.
+    S2_5,
+}
+
+impl Level {
+    pub fn scale_range(self) -> (f32, f32) {
+        match self {
+            Self::S1 => (1.0, 1.0),
+            Self::S1_5 => (0.8, 1.5),
+            Self::S2 => (0.5, 2.0),
+            Self::S2_5 => (0.4, 2.5),
+        }
+    }
+
+    pub fn name(self) -> &'static str {
+        match self {
+            Self::S1 => "S1",
+            Self::S1_5 => "S1.5",
+            Self::S2 => "S2",
+            Self::S2_5 => "S2.5",
+        }
+    }
+}
+
+impl FromStr for Level {
+    type Err = String;
+    fn from_str(s: &str) -> Result<Self, String> {
+        match s.to_ascii_uppercase().as_str() {
+            "S1" => Ok(Self::S1),
+            "S1.5" => Ok(Self::S1_5),
+            "S2" => Ok(Self::S2),
+            "S2.5" => Ok(Self::S2_5),
+            _ => Err(format!("unknown level `{s}`: use S1, S1.5, S2 or S2.5")),
+        }
+    }
+}
+
+/// One pair and its truth. `truth` follows the public pose convention relative to `template`.
+#[derive(Debug, Clone)]
+pub struct SyntheticPair {
+    pub template: RgbImage32,
+    pub search: RgbImage32,
+    pub truth: Vec<Pose>,
+}
+
+#[derive(Debug, thiserror::Error)]
+pub enum SynthError {
+    #[error("{path}: cannot list images: {source}")]
+    Io {
+        path: PathBuf,
+        #[source]
+        source: std::io::Error,
+    },
+    #[error(
+        "{path}: no usable images (PNG, JPEG, BMP, TIFF, PNM, WebP-free, at least {min_side} px a side) found"
+    )]
+    NoImages { path: PathBuf, min_side: u32 },
+    #[error("could not place a {what} after {tries} tries; use larger photos or smaller templates")]
+    Unplaceable { what: String, tries: usize },
+}
+
+/// Photos kept in memory at most this many pixels on the long side (a wallpaper folder of
+/// hundreds of 4K images must not need gigabytes).
+const MAX_PHOTO_SIDE: u32 = 1024;
+
+/// A set of photos to cut pairs from.
+pub struct PhotoSet {
+    photos: Vec<RgbImage>,
+    pub paths: Vec<PathBuf>,
+}
+
+impl PhotoSet {
+    /// Every decodable image under `dir` (recursively), sorted by path so the set does not
+    /// depend on directory order, each downscaled to at most [`MAX_PHOTO_SIDE`].
+    pub fn load(dir: &Path, min_side: u32) -> Result<Self, SynthError> {
+        let mut files = Vec::new();
+        collect_files(dir, &mut files)?;
+        files.sort();
+        let mut photos = Vec::new();
+        let mut paths = Vec::new();
+        for path in files {
+            let Ok(image) = image::open(&path) else {
+                continue;
+            };
+            let mut rgb = image.to_rgb8();
+            let long = rgb.width().max(rgb.height());
+            if long > MAX_PHOTO_SIDE {
+                let f = MAX_PHOTO_SIDE as f32 / long as f32;
+                let (w, h) = (
+                    (rgb.width() as f32 * f).round() as u32,
+                    (rgb.height() as f32 * f).round() as u32,
+                );
+                rgb = image::imageops::resize(&rgb, w, h, image::imageops::FilterType::Triangle);
+            }
+            if rgb.width() >= min_side && rgb.height() >= min_side {
+                photos.push(rgb);
+                paths.push(path);
+            }
+        }
+        if photos.is_empty() {
+            return Err(SynthError::NoImages {
+                path: dir.to_owned(),
+                min_side,
+            });
+        }
+        Ok(Self { photos, paths })
+    }
+
+    pub fn len(&self) -> usize {
+        self.photos.len()
+    }
+
+    pub fn is_empty(&self) -> bool {
+        self.photos.is_empty()
+    }
+}
+
+fn collect_files(dir: &Path, out: &mut Vec<PathBuf>) -> Result<(), SynthError> {
+    let io = |source| SynthError::Io {
+        path: dir.to_owned(),
+        source,
+    };
+    for entry in std::fs::read_dir(dir).map_err(io)? {
+        let path = entry.map_err(io)?.path();
+        if path.is_dir() {
+            collect_files(&path, out)?;
+        } else if path.extension().and_then(|e| e.to_str()).is_some_and(|e| {
+            matches!(
+                e.to_ascii_lowercase().as_str(),
+                "png" | "jpg" | "jpeg" | "bmp" | "tif" | "tiff" | "pnm" | "ppm" | "pgm"
+            )
+        }) {
+            out.push(path);
+        }
+    }
+    Ok(())
+}
+
+/// What pairs to make.
+#[derive(Debug, Clone, Copy)]
+pub struct PairSpec {
+    pub level: Level,
+    /// Registered template size (the paper: 12x12, 28x52, 36x36, 124x124).
+    pub template_width: u32,
+    pub template_height: u32,
+    /// Search window side (the paper: 224).
+    pub search_side: u32,
+}
+
+const TRIES: usize = 200;
+
+fn rng_for(seed: u64, index: u64) -> StdRng {
+    StdRng::seed_from_u64(seed ^ index.wrapping_mul(0x9E37_79B9_7F4A_7C15))
+}
+
+fn to_f32(image: &RgbImage) -> RgbImage32 {
+    RgbImage32::from_dynamic(&image::DynamicImage::ImageRgb8(image.clone()))
+}
+
+/// Pair `index` of the set defined by `(photos, spec, seed)` (Algorithm 1).
+pub fn make_pair(
+    photos: &PhotoSet,
+    spec: &PairSpec,
+    seed: u64,
+    index: u64,
+) -> Result<SyntheticPair, SynthError> {
+    let mut rng = rng_for(seed, index);
+    let (lo, hi) = spec.level.scale_range();
+    let (tw, th) = (spec.template_width, spec.template_height);
+    let side = spec.search_side as f32;
+    for _ in 0..TRIES {
+        let photo = &photos.photos[rng.random_range(0..photos.len())];
+        let (pw, ph) = (photo.width(), photo.height());
+        let sx = rng.random_range(lo..=hi);
+        let sy = rng.random_range(lo..=hi);
+        // The box in the photo, in whole pixels; its true scale follows from the rounded size.
+        let bw = (sx * tw as f32).round().max(2.0) as u32;
+        let bh = (sy * th as f32).round().max(2.0) as u32;
+        if bw + 2 > pw || bh + 2 > ph {
+            continue;
+        }
+        let angle: f32 = rng.random_range(-180.0..180.0);
+        let (s, c) = angle.to_radians().sin_cos();
+        // Half extent of the rotated box in the search window.
+        let ex = (bw as f32 * c.abs() + bh as f32 * s.abs()) / 2.0;
+        let ey = (bw as f32 * s.abs() + bh as f32 * c.abs()) / 2.0;
+        if 2.0 * ex + 2.0 > side || 2.0 * ey + 2.0 > side {
+            continue;
+        }
+        let x0 = rng.random_range(0..=pw - bw);
+        let y0 = rng.random_range(0..=ph - bh);
+        // Box centre in pixel-centre coordinates.
+        let (cx, cy) = (
+            x0 as f32 + (bw as f32 - 1.0) / 2.0,
+            y0 as f32 + (bh as f32 - 1.0) / 2.0,
+        );
+        // Where the object centre lands in the window: anywhere that keeps the box inside.
+        let xc = rng.random_range(ex..=side - 1.0 - ex);
+        let yc = rng.random_range(ey..=side - 1.0 - ey);
+        let truth = Pose {
+            x: xc,
+            y: yc,
+            angle_deg: angle,
+            scale_x: bw as f32 / tw as f32,
+            scale_y: bh as f32 / th as f32,
+            score: 1.0,
+        };
+        let Some(search) = warp_search_window(photo, spec.search_side, (cx, cy), &truth) else {
+            continue; // the window would show blank border
+        };
+        let crop = image::imageops::crop_imm(photo, x0, y0, bw, bh).to_image();
+        let template = resize_rgb(&to_f32(&crop), tw, th);
+        return Ok(SyntheticPair {
+            template,
+            search,
+            truth: vec![truth],
+        });
+    }
+    Err(SynthError::Unplaceable {
+        what: format!("{tw}x{th} template at {}", spec.level.name()),
+        tries: TRIES,
+    })
+}
+
+/// Multi-instance image `index`: a 320x320 background cut from one photo, a template cut from
+/// another place, and 2–8 copies of it (rotated, independently scaled within the level, masked)
+/// in distinct cells of a 4x4 grid, so that no two overlap.
+pub fn make_multi_instance(
+    photos: &PhotoSet,
+    level: Level,
+    template_side: u32,
+    seed: u64,
+    index: u64,
+) -> Result<SyntheticPair, SynthError> {
+    const SIDE: u32 = 320;
+    const CELLS: u32 = 4;
+    let cell = (SIDE / CELLS) as f32;
+    let mut rng = rng_for(seed ^ 0x5EED_0F_1A57, index);
+    let (lo, hi) = level.scale_range();
+    for _ in 0..TRIES {
+        let background_photo = &photos.photos[rng.random_range(0..photos.len())];
+        let template_photo = &photos.photos[rng.random_range(0..photos.len())];
+        if background_photo.width() < SIDE
+            || background_photo.height() < SIDE
+            || template_photo.width() < template_side
+            || template_photo.height() < template_side
+        {
+            continue;
+        }
+        let bx = rng.random_range(0..=background_photo.width() - SIDE);
+        let by = rng.random_range(0..=background_photo.height() - SIDE);
+        let mut search =
+            to_f32(&image::imageops::crop_imm(background_photo, bx, by, SIDE, SIDE).to_image());
+        let tx = rng.random_range(0..=template_photo.width() - template_side);
+        let ty = rng.random_range(0..=template_photo.height() - template_side);
+        let template = to_f32(
+            &image::imageops::crop_imm(template_photo, tx, ty, template_side, template_side)
+                .to_image(),
+        );
+        let count = rng.random_range(2..=8usize);
+        let mut cells: Vec<u32> = (0..CELLS * CELLS).collect();
+        // Fisher–Yates with our rng, first `count` cells.
+        for i in 0..count {
+            let j = rng.random_range(i..cells.len());
+            cells.swap(i, j);
+        }
+        let mut truth = Vec::new();
+        for &c in &cells[..count] {
+            let angle: f32 = rng.random_range(-180.0..180.0);
+            let (s, co) = angle.to_radians().sin_cos();
+            let mut sx = rng.random_range(lo..=hi);
+            let mut sy = rng.random_range(lo..=hi);
+            // Keep each rotated copy inside its cell (shrink if the level allows more).
+            let t = template_side as f32;
+            let extent = |sx: f32, sy: f32| {
+                (sx * t * co.abs() + sy * t * s.abs()).max(sx * t * s.abs() + sy * t * co.abs())
+            };
+            let fit = (cell - 4.0) / extent(sx, sy);
+            if fit < 1.0 {
+                sx *= fit;
+                sy *= fit;
+            }
+            let half = extent(sx, sy) / 2.0;
+            let (cx0, cy0) = ((c % CELLS) as f32 * cell, (c / CELLS) as f32 * cell);
+            let slack = (cell / 2.0 - half - 1.0).max(0.0);
+            let x = cx0 + cell / 2.0 - 0.5 + rng.random_range(-slack..=slack);
+            let y = cy0 + cell / 2.0 - 0.5 + rng.random_range(-slack..=slack);
+            let pose = Pose {
+                x,
+                y,
+                angle_deg: angle,
+                scale_x: sx,
+                scale_y: sy,
+                score: 1.0,
+            };
+            sampler::paste(&mut search, &template, &pose);
+            truth.push(pose);
+        }
+        return Ok(SyntheticPair {
+            template,
+            search,
+            truth,
+        });
+    }
+    Err(SynthError::Unplaceable {
+        what: "multi-instance scene".into(),
+        tries: TRIES,
+    })
+}
