@@ -21,6 +21,7 @@ use posematch::imaging::{InputConvention, RgbImage32};
 use posematch::matcher::decode::{MapPlanes, decode_peak, find_peaks};
 use posematch::matcher::{MatchOptions, Matcher};
 use posematch::model::{Tdcm, TdcmConfig, load_weights, multiply_adds, select_device};
+use posematch::refine::{GrayImage32, refine_pose};
 
 fn model(device: &Device) -> (Tdcm, &'static str) {
     let official =
@@ -146,6 +147,41 @@ fn benches(c: &mut Criterion) {
                 .map(|(r, c)| decode_peak(&planes, r, c))
                 .collect::<Vec<_>>()
         })
+    });
+    // Refinement of one instance at 36x36 from a pose a few degrees, pixels and percent off.
+    let search_image = frame(224, 224);
+    let gray_search = GrayImage32::from_rgb(&search_image);
+    let truth = posematch::geometry::Pose {
+        x: 110.3,
+        y: 97.8,
+        angle_deg: 25.0,
+        scale_x: 1.1,
+        scale_y: 0.9,
+        score: 1.0,
+    };
+    let mut values = Vec::new();
+    for b in 0..36 {
+        for a in 0..36 {
+            let (x, y) = truth.map_point(a as f32 - 17.5, b as f32 - 17.5);
+            let i = (y.round() as usize * 224 + x.round() as usize).min(224 * 224 - 1);
+            values.push(gray_search.values[i]);
+        }
+    }
+    let gray_template = GrayImage32 {
+        width: 36,
+        height: 36,
+        values,
+    };
+    let rough = posematch::geometry::Pose {
+        x: 111.5,
+        y: 96.9,
+        angle_deg: 33.0,
+        scale_x: 1.25,
+        scale_y: 0.85,
+        score: 0.8,
+    };
+    group.bench_function("refine_instance_36", |b| {
+        b.iter(|| refine_pose(&gray_template, &gray_search, &rough))
     });
     group.finish();
 

@@ -80,8 +80,11 @@ pub fn run(args: EvalArgs) -> Result<(), CliError> {
         search_side,
     };
     // No scale range: the network sees objects at the template's size, as it was trained.
+    // Single-instance pairs always hold the object, so the best peak is the answer whatever its
+    // score (as in the paper and the official decode); multi-instance keeps the default 0.5.
     let options = MatchOptions {
         max_instances: if args.multi_instance { 16 } else { 1 },
+        min_score: if args.multi_instance { 0.5 } else { 0.01 },
         refine: false,
         ..MatchOptions::default()
     };

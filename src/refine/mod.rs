@@ -6,11 +6,11 @@
 //! the paper's uncentred cosine similarity: the uncentred score is above 0.9 for almost any
 //! alignment on natural images (reference README), so it cannot rank candidates finely.
 //!
-//! 1. Angle: ±30° around the estimate in 2° steps on a sparse grid of template points.
-//! 2. Scales: a 9x9 grid of `scale_x, scale_y` factors 0.7–1.4 at the best angle, then the
-//!    angle again ±4° in 1° steps.
-//! 3. Polish: all five parameters by coordinate-wise parabolic fits with shrinking steps on the
-//!    full grid, so the result falls well below the step sizes.
+//! 1. Angle x scales on a sparse grid of template points: ±30° in 3° steps x five factors
+//!    0.7–1.4 per axis; then scales ±10 % and the angle ±4° in finer steps.
+//! 3. Polish: all five parameters by coordinate-wise parabolic fits on the full grid, steps
+//!    halving from 2 px / 2° / 6 % over nine rounds, so the centre can still move a few pixels
+//!    and the result falls far below the search steps.
 //!
 //! The refined pose replaces the initial one only if it scores higher and stays near it, so
 //! refinement never loses an object the network found.
@@ -116,7 +116,8 @@ pub fn refine_pose(template: &GrayImage32, image: &GrayImage32, initial: &Pose) 
     let initial_score = dense.score(image, initial);
     let mut best = *initial;
 
-    // 1. Angle, ±30° in 2° steps at the network's scales.
+    // 1. Angle and scales together (the network's scale is its coarsest output, and a wrong
+    //    scale hides the right angle): ±30° in 3° steps x factors 0.7–1.4 on each axis.
     let mut best_sparse = sparse.score(image, &best);
     let mut try_pose = |candidate: Pose, best: &mut Pose| {
         let s = sparse.score(image, &candidate);
@@ -125,21 +126,27 @@ pub fn refine_pose(template: &GrayImage32, image: &GrayImage32, initial: &Pose) 
             *best = candidate;
         }
     };
-    for k in -15..=15 {
-        let candidate = Pose {
-            angle_deg: initial.angle_deg + 2.0 * k as f32,
-            ..*initial
-        };
-        try_pose(candidate, &mut best);
+    for k in -10..=10 {
+        for i in 0..5 {
+            for j in 0..5 {
+                let factor = |k: i32| 0.7f32 * 2f32.powf(k as f32 / 4.0);
+                let candidate = Pose {
+                    angle_deg: initial.angle_deg + 3.0 * k as f32,
+                    scale_x: initial.scale_x * factor(i),
+                    scale_y: initial.scale_y * factor(j),
+                    ..*initial
+                };
+                try_pose(candidate, &mut best);
+            }
+        }
     }
-    // 2. Scales: a 9x9 grid of factors 0.7–1.4 (the network's scale is the coarsest output).
+    // 2. Scales finer around the best: a 5x5 grid of factors ±10 %.
     let base = best;
-    for i in 0..9 {
-        for j in 0..9 {
-            let factor = |k: i32| 0.7f32 * 2f32.powf(k as f32 / 8.0);
+    for i in -2..=2 {
+        for j in -2..=2 {
             let candidate = Pose {
-                scale_x: base.scale_x * factor(i),
-                scale_y: base.scale_y * factor(j),
+                scale_x: base.scale_x * (1.0 + 0.05 * i as f32),
+                scale_y: base.scale_y * (1.0 + 0.05 * j as f32),
                 ..base
             };
             try_pose(candidate, &mut best);
@@ -156,9 +163,9 @@ pub fn refine_pose(template: &GrayImage32, image: &GrayImage32, initial: &Pose) 
     }
     // 3. Polish all five parameters.
     let side = template.width.min(template.height) as f32;
-    let mut steps = [0.5f32, 0.5, 1.0, 0.03, 0.03]; // x, y (px), angle (°), relative scales
+    let mut steps = [2.0f32, 2.0, 2.0, 0.06, 0.06]; // x, y (px), angle (°), relative scales
     let mut best_score = dense.score(image, &best);
-    for _ in 0..6 {
+    for _ in 0..9 {
         for (parameter, step) in steps.iter().enumerate() {
             let at = |delta: f32| {
                 let mut p = best;

@@ -264,7 +264,7 @@ pub fn make_multi_instance(
     const SIDE: u32 = 320;
     const CELLS: u32 = 4;
     let cell = (SIDE / CELLS) as f32;
-    let mut rng = rng_for(seed ^ 0x5EED_0F_1A57, index);
+    let mut rng = rng_for(seed ^ 0x005E_ED0F_1A57, index);
     let (lo, hi) = level.scale_range();
     for _ in 0..TRIES {
         let background_photo = &photos.photos[rng.random_range(0..photos.len())];
@@ -335,4 +335,106 @@ pub fn make_multi_instance(
         what: "multi-instance scene".into(),
         tries: TRIES,
     })
+}
+
+#[cfg(test)]
+mod tests {
+    use super::*;
+
+    /// A folder with two synthetic "photos" (smooth textures).
+    fn photo_dir() -> tempfile::TempDir {
+        let dir = tempfile::tempdir().unwrap();
+        for (k, (w, h)) in [(640u32, 480u32), (500, 700)].into_iter().enumerate() {
+            let image = RgbImage::from_fn(w, h, |x, y| {
+                let (fx, fy) = (x as f32 + 37.0 * k as f32, y as f32);
+                let v = |a: f32, b: f32| {
+                    (127.0
+                        + 60.0 * (fx * a).sin() * (fy * b).cos()
+                        + 50.0 * ((fx * b - fy * a) * 0.7).sin()) as u8
+                };
+                image::Rgb([v(0.05, 0.08), v(0.09, 0.03), v(0.02, 0.11)])
+            });
+            image
+                .save(dir.path().join(format!("photo{k}.png")))
+                .unwrap();
+        }
+        dir
+    }
+
+    /// Mean absolute difference between the template and the search sampled at the truth.
+    fn truth_residual(pair: &SyntheticPair, truth: &Pose) -> f32 {
+        let (tw, th) = (pair.template.width as usize, pair.template.height as usize);
+        let mut total = 0.0;
+        let mut count = 0;
+        // Inner pixels only: the template was resampled (antialiased) from the box.
+        for b in 2..th - 2 {
+            for a in 2..tw - 2 {
+                let (x, y) = truth.map_point(
+                    a as f32 - (tw as f32 - 1.0) / 2.0,
+                    b as f32 - (th as f32 - 1.0) / 2.0,
+                );
+                let s = sampler::sample_f32(&pair.search, x, y);
+                let t = &pair.template.pixels[(b * tw + a) * 3..(b * tw + a) * 3 + 3];
+                total += (0..3).map(|k| (s[k] - t[k]).abs()).sum::<f32>() / 3.0;
+                count += 1;
+            }
+        }
+        total / count as f32
+    }
+
+    #[test]
+    fn pairs_are_deterministic_and_their_truth_is_exact() {
+        let dir = photo_dir();
+        let photos = PhotoSet::load(dir.path(), 224).unwrap();
+        let spec = PairSpec {
+            level: Level::S1_5,
+            template_width: 28,
+            template_height: 52,
+            search_side: 224,
+        };
+        for index in 0..8 {
+            let a = make_pair(&photos, &spec, 7, index).unwrap();
+            let b = make_pair(&photos, &spec, 7, index).unwrap();
+            assert_eq!(a.truth, b.truth);
+            assert_eq!(a.search.pixels, b.search.pixels);
+            let t = a.truth[0];
+            assert!(
+                (0.8..=1.5 + 0.02).contains(&t.scale_x) && (0.8..=1.5 + 0.02).contains(&t.scale_y),
+                "{t:?}"
+            );
+            let residual = truth_residual(&a, &t);
+            assert!(
+                residual < 0.03,
+                "pair {index}: template and search disagree at the truth ({residual})"
+            );
+            // A wrong pose does not fit: the check above can fail.
+            let wrong = Pose {
+                angle_deg: t.angle_deg + 20.0,
+                ..t
+            };
+            assert!(truth_residual(&a, &wrong) > 2.0 * residual);
+        }
+        assert_ne!(
+            make_pair(&photos, &spec, 8, 0).unwrap().truth,
+            make_pair(&photos, &spec, 7, 0).unwrap().truth
+        );
+    }
+
+    #[test]
+    fn multi_instance_truth_is_exact_and_disjoint() {
+        let dir = photo_dir();
+        let photos = PhotoSet::load(dir.path(), 320).unwrap();
+        let pair = make_multi_instance(&photos, Level::S1_5, 36, 3, 0).unwrap();
+        assert!((2..=8).contains(&pair.truth.len()));
+        for t in &pair.truth {
+            assert!(truth_residual(&pair, t) < 0.03);
+        }
+        for (i, a) in pair.truth.iter().enumerate() {
+            for b in &pair.truth[i + 1..] {
+                let iou =
+                    crate::geometry::rotated_iou(&a.corners(36.0, 36.0), &b.corners(36.0, 36.0));
+                assert_eq!(iou, 0.0);
+            }
+        }
+    }
 }
