@@ -12,10 +12,14 @@
 //!    halving from 2 px / 2° / 6 % over nine rounds, so the centre can still move a few pixels
 //!    and the result falls far below the search steps.
 //!
-//! The refined pose replaces the initial one only if it scores higher and stays near it, so
-//! refinement never loses an object the network found.
+//! The refined pose replaces the initial one only if it scores higher, reaches ZNCC >= 0.6 and
+//! its centre stays within a third of the object's size, so that refinement does not trade an
+//! object the network found for a better-looking neighbour.
 
 use crate::geometry::{Pose, wrap_angle_deg};
+
+/// ZNCC below which the refined alignment is not trusted (the content is too ambiguous).
+const MIN_MATCH_SCORE: f32 = 0.6;
 use crate::imaging::RgbImage32;
 
 /// A single-channel float image.
@@ -162,7 +166,6 @@ pub fn refine_pose(template: &GrayImage32, image: &GrayImage32, initial: &Pose) 
         try_pose(candidate, &mut best);
     }
     // 3. Polish all five parameters.
-    let side = template.width.min(template.height) as f32;
     let mut steps = [2.0f32, 2.0, 2.0, 0.06, 0.06]; // x, y (px), angle (°), relative scales
     let mut best_score = dense.score(image, &best);
     for _ in 0..9 {
@@ -200,11 +203,13 @@ pub fn refine_pose(template: &GrayImage32, image: &GrayImage32, initial: &Pose) 
         }
         steps.iter_mut().for_each(|s| *s *= 0.5);
     }
-    // Never worse than the network, never a jump to a neighbour.
+    // Keep the network's pose unless the refined one is better, clearly a match (as the paper
+    // keeps its estimate when every candidate scores below a threshold), and no jump to a
+    // neighbour: the centre stays within a third of the object's size.
+    let side = template.width.min(template.height) as f32;
     let moved = (best.x - initial.x).hypot(best.y - initial.y);
-    if best_score <= initial_score
-        || moved > 0.35 * side.max(8.0) * initial.scale_x.max(initial.scale_y)
-    {
+    let reach = side.max(8.0) * initial.scale_x.min(initial.scale_y) / 3.0;
+    if best_score <= initial_score || best_score < MIN_MATCH_SCORE || moved > reach {
         return *initial;
     }
     best.angle_deg = wrap_angle_deg(best.angle_deg);
