@@ -40,6 +40,10 @@ pub struct EvalArgs {
     /// Multi-instance images (320x320, 2–8 instances) with precision/recall instead of pairs.
     #[arg(long)]
     pub multi_instance: bool,
+    /// Matcher: `tdcm` (the network; rows without and with refinement) or `ncc` (the classical
+    /// baseline, always refined; needs no weights).
+    #[arg(long, value_enum, default_value = "tdcm")]
+    pub method: super::Method,
     /// Print JSON instead of the table.
     #[arg(long)]
     pub json: bool,
@@ -71,7 +75,10 @@ pub fn run(args: EvalArgs) -> Result<(), CliError> {
     let search_side = if args.multi_instance { 320 } else { 224 };
     let photos =
         PhotoSet::load(&args.images, search_side).map_err(|e| CliError::Usage(e.to_string()))?;
-    let matcher = load_model(&args.model)?;
+    let matcher = match args.method {
+        super::Method::Tdcm => Some(load_model(&args.model)?),
+        super::Method::Ncc => None,
+    };
     let (tw, th) = args.template_size;
     let spec = PairSpec {
         level: args.level,
@@ -103,8 +110,16 @@ pub fn run(args: EvalArgs) -> Result<(), CliError> {
         if let Some(saver) = saver.as_mut() {
             saver.save(index, &pair)?;
         }
-        let (coarse_poses, coarse_ms, refined_poses, refine_ms) =
-            run_pair(&matcher, &pair, &options, !args.no_refine)?;
+        let (coarse_poses, coarse_ms, refined_poses, refine_ms) = match &matcher {
+            Some(matcher) => run_pair(matcher, &pair, &options, !args.no_refine)?,
+            None => run_ncc(
+                &pair,
+                &options,
+                args.level,
+                !args.no_refine,
+                args.multi_instance,
+            ),
+        };
         let (ptw, pth) = (pair.template.width as f32, pair.template.height as f32);
         if args.multi_instance {
             coarse_counts.add(match_detections(&coarse_poses, &pair.truth, ptw, pth));
@@ -139,13 +154,52 @@ pub fn run(args: EvalArgs) -> Result<(), CliError> {
             args.json,
         );
     } else {
-        let rows = [("tdcm (network only)", summarise(&coarse))]
-            .into_iter()
-            .chain((!args.no_refine).then(|| ("tdcm + refinement", summarise(&refined))))
-            .collect::<Vec<_>>();
+        let rows = if matcher.is_some() {
+            [("tdcm (network only)", summarise(&coarse))]
+                .into_iter()
+                .chain((!args.no_refine).then(|| ("tdcm + refinement", summarise(&refined))))
+                .collect::<Vec<_>>()
+        } else {
+            let name = if args.no_refine {
+                "ncc"
+            } else {
+                "ncc + refinement"
+            };
+            vec![(name, summarise(&coarse))]
+        };
         print_table(&label, &rows, args.json);
     }
     Ok(())
+}
+
+/// The classical baseline on one pair (refined inside); same return shape as [`run_pair`].
+fn run_ncc(
+    pair: &SyntheticPair,
+    options: &MatchOptions,
+    level: Level,
+    refine: bool,
+    multi_instance: bool,
+) -> (Vec<Pose>, f64, Vec<Pose>, f64) {
+    let start = Instant::now();
+    let (lo, hi) = level.scale_range();
+    let ncc_options = MatchOptions {
+        refine,
+        // Single pairs always hold the object: take the best candidate whatever its score.
+        min_score: if multi_instance { 0.5 } else { -1.0 },
+        scale_range: (hi > lo).then_some(crate::matcher::ScaleRange { min: lo, max: hi }),
+        ..options.clone()
+    };
+    let poses = crate::matcher::ncc::ncc_match(
+        &GrayImage32::from_rgb(&pair.template),
+        &GrayImage32::from_rgb(&pair.search),
+        &ncc_options,
+    );
+    (
+        poses.clone(),
+        start.elapsed().as_secs_f64() * 1e3,
+        poses,
+        0.0,
+    )
 }
 
 /// Matches one pair: coarse poses and time, refined poses and the refinement's time.

@@ -11,6 +11,7 @@ use serde_json::{Value, json};
 
 use super::{CliError, ModelArgs, load_model, read_image};
 use crate::matcher::{AngleRange, EncodedTemplate, MatchOptions, Matcher, ScaleRange};
+use crate::refine::GrayImage32;
 
 #[derive(Args, Debug)]
 pub struct MatchArgs {
@@ -47,6 +48,10 @@ pub struct MatchArgs {
     /// Skip the geometric refinement of each pose.
     #[arg(long)]
     pub no_refine: bool,
+    /// Matcher: `tdcm` (the network) or `ncc` (classical exhaustive search, no weights needed;
+    /// single pairs only).
+    #[arg(long, value_enum, default_value = "tdcm", conflicts_with = "pairs")]
+    pub method: super::Method,
     /// Draw the poses on the search image and save it here (PNG).
     #[arg(long, conflicts_with = "pairs")]
     pub overlay: Option<PathBuf>,
@@ -102,26 +107,65 @@ pub fn run(args: MatchArgs) -> Result<(), CliError> {
     };
     let template = read_image(template_path)?;
     let image = read_image(image_path)?;
-    let matcher = load_model(&args.model)?;
-    let start = Instant::now();
-    let encoded = matcher.encode_template(&template)?;
-    let outcome = matcher.match_one(&encoded, &image, &options)?;
-    let ms = start.elapsed().as_secs_f64() * 1e3;
+    let (poses, ms) = if args.method == super::Method::Ncc {
+        check_ncc_sizes(&template, &image)?;
+        let start = Instant::now();
+        let poses = crate::matcher::ncc::ncc_match(
+            &GrayImage32::from_rgb(&template),
+            &GrayImage32::from_rgb(&image),
+            &options,
+        );
+        (poses, start.elapsed().as_secs_f64() * 1e3)
+    } else {
+        let matcher = load_model(&args.model)?;
+        let start = Instant::now();
+        let encoded = matcher.encode_template(&template)?;
+        let poses = matcher.match_one(&encoded, &image, &options)?.poses;
+        (poses, start.elapsed().as_secs_f64() * 1e3)
+    };
     if let Some(overlay) = &args.overlay {
-        super::overlay::save_overlay(&image, &outcome.poses, &encoded, overlay)?;
+        super::overlay::save_overlay(&image, &poses, template.width, template.height, overlay)?;
     }
     let answer = json!({
         "template": template_path,
         "image": image_path,
         "image_width": image.width,
         "image_height": image.height,
-        "poses": outcome.poses,
+        "poses": poses,
         "ms": round3(ms),
     });
     println!(
         "{}",
         serde_json::to_string_pretty(&answer).expect("JSON of plain values")
     );
+    Ok(())
+}
+
+/// The same size rules as the network path, so both methods refuse the same inputs.
+fn check_ncc_sizes(
+    template: &crate::imaging::RgbImage32,
+    image: &crate::imaging::RgbImage32,
+) -> Result<(), CliError> {
+    use crate::matcher::{MAX_TEMPLATE_SIDE, MIN_IMAGE_SIDE, MIN_TEMPLATE_SIDE, MatchError};
+    let (tw, th, iw, ih) = (template.width, template.height, image.width, image.height);
+    let ok = |s: u32| (MIN_TEMPLATE_SIDE..=MAX_TEMPLATE_SIDE).contains(&s);
+    if !ok(tw) || !ok(th) {
+        return Err(MatchError::TemplateSize {
+            width: tw,
+            height: th,
+        }
+        .into());
+    }
+    if iw < MIN_IMAGE_SIDE || ih < MIN_IMAGE_SIDE {
+        return Err(MatchError::ImageTooSmall {
+            width: iw,
+            height: ih,
+        }
+        .into());
+    }
+    if tw > iw || th > ih {
+        return Err(MatchError::TemplateLargerThanImage { tw, th, iw, ih }.into());
+    }
     Ok(())
 }
 

@@ -61,6 +61,15 @@ pub struct ModelArgs {
     pub convention: InputConvention,
 }
 
+/// Which matcher answers.
+#[derive(Debug, Clone, Copy, PartialEq, Eq, clap::ValueEnum)]
+pub enum Method {
+    /// The TDCM network (needs weights), then refinement.
+    Tdcm,
+    /// Exhaustive rotation x scale NCC over a pyramid (no weights; slow), then refinement.
+    Ncc,
+}
+
 fn parse_convention(s: &str) -> Result<InputConvention, String> {
     match s {
         "imagenet" => Ok(InputConvention::ImagenetRgb),

@@ -10,7 +10,6 @@ use imageproc::rect::Rect;
 use super::CliError;
 use crate::geometry::Pose;
 use crate::imaging::RgbImage32;
-use crate::matcher::EncodedTemplate;
 
 const BOX: Rgb<u8> = Rgb([0, 230, 0]);
 const ARROW: Rgb<u8> = Rgb([255, 40, 40]);
@@ -19,7 +18,8 @@ const LABEL: Rgb<u8> = Rgb([255, 255, 0]);
 pub fn save_overlay(
     image: &RgbImage32,
     poses: &[Pose],
-    template: &EncodedTemplate,
+    template_width: u32,
+    template_height: u32,
     path: &Path,
 ) -> Result<(), CliError> {
     let mut canvas = RgbImage::from_fn(image.width, image.height, |x, y| {
@@ -33,7 +33,7 @@ pub fn save_overlay(
     });
     // Thicker strokes on large frames so the drawing stays visible when scaled down.
     let thickness = (image.width.max(image.height) / 600).max(1) as i32;
-    let (tw, th) = (template.width as f32, template.height as f32);
+    let (tw, th) = (template_width as f32, template_height as f32);
     for pose in poses {
         let corners = pose.corners(tw, th);
         for i in 0..4 {

@@ -3,6 +3,7 @@
 //! (see [`decode`]) and maps them back into the public pose convention.
 
 pub mod decode;
+pub mod ncc;
 pub mod options;
 pub mod plan;
 

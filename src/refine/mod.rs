@@ -57,14 +57,14 @@ impl GrayImage32 {
 }
 
 /// Template points (offsets from the template centre) with zero-mean, unit-norm values.
-struct TemplatePoints {
+pub(crate) struct TemplatePoints {
     offsets: Vec<(f32, f32)>,
     weights: Vec<f32>,
 }
 
 impl TemplatePoints {
     /// Every `stride`-th template pixel (at most ~`max_side` per side).
-    fn new(template: &GrayImage32, max_side: usize) -> Self {
+    pub(crate) fn new(template: &GrayImage32, max_side: usize) -> Self {
         let stride = template
             .width
             .max(template.height)
@@ -92,7 +92,7 @@ impl TemplatePoints {
     }
 
     /// ZNCC of the template against the image under `pose`, in [-1, 1].
-    fn score(&self, image: &GrayImage32, pose: &Pose) -> f32 {
+    pub(crate) fn score(&self, image: &GrayImage32, pose: &Pose) -> f32 {
         let (s, c) = pose.angle_deg.to_radians().sin_cos();
         let (ax, ay) = (pose.scale_x * c, -pose.scale_x * s);
         let (bx, by) = (pose.scale_y * s, pose.scale_y * c);
