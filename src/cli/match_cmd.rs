@@ -108,7 +108,12 @@ pub fn run(args: MatchArgs) -> Result<(), CliError> {
     let template = read_image(template_path)?;
     let image = read_image(image_path)?;
     let (poses, ms) = if args.method == super::Method::Ncc {
-        check_ncc_sizes(&template, &image)?;
+        crate::matcher::check_pair_sizes(
+            template.width,
+            template.height,
+            image.width,
+            image.height,
+        )?;
         let start = Instant::now();
         let poses = crate::matcher::ncc::ncc_match(
             &GrayImage32::from_rgb(&template),
@@ -138,34 +143,6 @@ pub fn run(args: MatchArgs) -> Result<(), CliError> {
         "{}",
         serde_json::to_string_pretty(&answer).expect("JSON of plain values")
     );
-    Ok(())
-}
-
-/// The same size rules as the network path, so both methods refuse the same inputs.
-fn check_ncc_sizes(
-    template: &crate::imaging::RgbImage32,
-    image: &crate::imaging::RgbImage32,
-) -> Result<(), CliError> {
-    use crate::matcher::{MAX_TEMPLATE_SIDE, MIN_IMAGE_SIDE, MIN_TEMPLATE_SIDE, MatchError};
-    let (tw, th, iw, ih) = (template.width, template.height, image.width, image.height);
-    let ok = |s: u32| (MIN_TEMPLATE_SIDE..=MAX_TEMPLATE_SIDE).contains(&s);
-    if !ok(tw) || !ok(th) {
-        return Err(MatchError::TemplateSize {
-            width: tw,
-            height: th,
-        }
-        .into());
-    }
-    if iw < MIN_IMAGE_SIDE || ih < MIN_IMAGE_SIDE {
-        return Err(MatchError::ImageTooSmall {
-            width: iw,
-            height: ih,
-        }
-        .into());
-    }
-    if tw > iw || th > ih {
-        return Err(MatchError::TemplateLargerThanImage { tw, th, iw, ih }.into());
-    }
     Ok(())
 }
 

@@ -291,15 +291,8 @@ fn check_template_size(width: u32, height: u32) -> Result<(), MatchError> {
     }
 }
 
-/// Validates a job and cuts it into network pieces.
-fn prepare(
-    index: usize,
-    job: &MatchJob,
-    max_whole_pixels: usize,
-) -> Result<Vec<Piece>, MatchError> {
-    job.options.validate().map_err(MatchError::InvalidOption)?;
-    let (tw, th) = (job.template.width, job.template.height);
-    let (iw, ih) = (job.image.width, job.image.height);
+/// The size rules every matcher applies to a `tw x th` template and an `iw x ih` image.
+pub fn check_pair_sizes(tw: u32, th: u32, iw: u32, ih: u32) -> Result<(), MatchError> {
     check_template_size(tw, th)?;
     if iw < MIN_IMAGE_SIDE || ih < MIN_IMAGE_SIDE {
         return Err(MatchError::ImageTooSmall {
@@ -310,6 +303,19 @@ fn prepare(
     if tw > iw || th > ih {
         return Err(MatchError::TemplateLargerThanImage { tw, th, iw, ih });
     }
+    Ok(())
+}
+
+/// Validates a job and cuts it into network pieces.
+fn prepare(
+    index: usize,
+    job: &MatchJob,
+    max_whole_pixels: usize,
+) -> Result<Vec<Piece>, MatchError> {
+    job.options.validate().map_err(MatchError::InvalidOption)?;
+    let (tw, th) = (job.template.width, job.template.height);
+    let (iw, ih) = (job.image.width, job.image.height);
+    check_pair_sizes(tw, th, iw, ih)?;
     let (lo, hi) = job
         .options
         .scale_range
