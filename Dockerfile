@@ -12,7 +12,6 @@ RUN mkdir -p src benches \
 COPY src src
 COPY benches benches
 COPY proto proto
-COPY models models
 RUN touch src/main.rs src/lib.rs && cargo build --release --locked --bin posematch
 
 FROM debian:bookworm-slim
