@@ -209,14 +209,7 @@ struct HeadsCpu {
 impl HeadsCpu {
     fn new(heads: &Heads) -> Self {
         let all = heads.all();
-        // Stack the five hidden convs as one with 60 outputs (cat of weights along cout).
-        let weight = Tensor::cat(all.iter().map(|h| h.conv3x3.weight.val()).collect(), 0);
-        let bias = Tensor::cat(
-            all.iter()
-                .map(|h| h.conv3x3.bias.as_ref().expect("heads have biases").val())
-                .collect(),
-            0,
-        );
+        let (weight, bias) = heads.stacked_hidden();
         let hidden = Conv3x3::from_parts(weight, Some(bias), None);
         let mut output_weight = Vec::new();
         let mut output_bias = Vec::new();

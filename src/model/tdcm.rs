@@ -270,6 +270,21 @@ pub struct Heads {
 }
 
 impl Heads {
+    /// The five hidden 3x3 convolutions as one with 60 outputs: weights `[60, 24, 3, 3]` and
+    /// biases `[60]`, heads in [`MatchMaps::CHANNELS`] order.
+    pub fn stacked_hidden(&self) -> (Tensor<4>, Tensor<1>) {
+        let heads = self.all();
+        let weight = Tensor::cat(heads.iter().map(|h| h.conv3x3.weight.val()).collect(), 0);
+        let bias = Tensor::cat(
+            heads
+                .iter()
+                .map(|h| h.conv3x3.bias.as_ref().expect("heads have biases").val())
+                .collect(),
+            0,
+        );
+        (weight, bias)
+    }
+
     /// The heads in [`MatchMaps::CHANNELS`] order.
     pub fn all(&self) -> [&Head; 5] {
         [
@@ -300,21 +315,8 @@ impl Heads {
     /// - output: `[batch, 5, H, W]`, channels in [`MatchMaps::CHANNELS`] order, output functions
     ///   applied
     pub fn forward(&self, x: Tensor<4>) -> Tensor<4> {
-        let heads = [
-            &self.score,
-            &self.sign,
-            &self.cos,
-            &self.scale_x,
-            &self.scale_y,
-        ];
-        let w3 = Tensor::cat(heads.iter().map(|h| h.conv3x3.weight.val()).collect(), 0);
-        let b3 = Tensor::cat(
-            heads
-                .iter()
-                .map(|h| h.conv3x3.bias.as_ref().expect("heads have biases").val())
-                .collect(),
-            0,
-        );
+        let heads = self.all();
+        let (w3, b3) = self.stacked_hidden();
         let w1 = Tensor::cat(heads.iter().map(|h| h.conv1x1.weight.val()).collect(), 0);
         let b1 = Tensor::cat(
             heads
