@@ -3,13 +3,15 @@
 //!
 //! Layers, lowest first: [`model`] (burn network, weights), [`imaging`] (decode, normalise,
 //! resize), [`geometry`] (pose convention, rotated boxes), [`matcher`] (images in, poses out),
-//! and [`cli`] on top.
+//! [`engine`] (template registry, batching model thread), [`service`] (gRPC) and [`cli`] on top.
 
 pub mod cli;
+pub mod engine;
 pub mod evaluation;
 pub mod geometry;
 pub mod imaging;
 pub mod matcher;
 pub mod model;
 pub mod refine;
+pub mod service;
 pub mod synth;

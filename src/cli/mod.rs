@@ -4,6 +4,7 @@
 mod eval_cmd;
 mod match_cmd;
 mod overlay;
+mod serve_cmd;
 
 use std::path::{Path, PathBuf};
 
@@ -32,6 +33,8 @@ pub enum Command {
     Match(MatchArgs),
     /// Measure accuracy on generated pairs with exact ground truth (the paper's metrics).
     Eval(eval_cmd::EvalArgs),
+    /// Run the gRPC service (template registry, batching, health, reflection, metrics).
+    Serve(serve_cmd::ServeArgs),
     /// Manage network weights.
     #[command(subcommand)]
     Weights(WeightsCommand),
@@ -70,7 +73,7 @@ pub enum Method {
     Ncc,
 }
 
-fn parse_convention(s: &str) -> Result<InputConvention, String> {
+pub(crate) fn parse_convention(s: &str) -> Result<InputConvention, String> {
     match s {
         "imagenet" => Ok(InputConvention::ImagenetRgb),
         "gray" | "grey" => Ok(InputConvention::Gray),
@@ -147,6 +150,7 @@ pub fn run(cli: Cli) -> Result<(), CliError> {
     match cli.command {
         Command::Match(args) => match_cmd::run(args),
         Command::Eval(args) => eval_cmd::run(args),
+        Command::Serve(args) => serve_cmd::run(args),
         Command::Weights(WeightsCommand::Import { from, out }) => {
             let device = select_device()?;
             let model = load_weights(&from, &device)?;

@@ -137,10 +137,14 @@ pub fn decode_image(
     if probe.format().is_none() {
         return Err(unsupported("unrecognised file signature".into()));
     }
-    let (width, height) = probe.into_dimensions().map_err(|e| DecodeError::Corrupt {
-        what: what.clone(),
-        message: e.to_string(),
-    })?;
+    let failed = |e: image::ImageError| match e {
+        image::ImageError::Unsupported(_) => unsupported(e.to_string()),
+        _ => DecodeError::Corrupt {
+            what: what.clone(),
+            message: e.to_string(),
+        },
+    };
+    let (width, height) = probe.into_dimensions().map_err(failed)?;
     let pixels = width as u64 * height as u64;
     if pixels > limits.max_pixels {
         return Err(DecodeError::TooLarge {
@@ -166,9 +170,6 @@ pub fn decode_image(
     // Room for a 16-bit RGBA decode of the announced size, and no more.
     decode_limits.max_alloc = Some(pixels * 8 + (1 << 20));
     reader.limits(decode_limits);
-    let image = reader.decode().map_err(|e| DecodeError::Corrupt {
-        what: what.clone(),
-        message: e.to_string(),
-    })?;
+    let image = reader.decode().map_err(failed)?;
     Ok(RgbImage32::from_dynamic(&image))
 }

@@ -1,0 +1,140 @@
+//! `posematch serve`: the gRPC service. Reads the layered settings, sets up logging in the
+//! configured format, starts the server and drains it on SIGTERM or Ctrl-C.
+
+use std::path::PathBuf;
+use std::time::Duration;
+
+use clap::Args;
+
+use super::{CliError, default_weights, parse_convention};
+use crate::matcher::Matcher;
+use crate::model::{Tdcm, load_weights, load_weights_from_bytes, select_device};
+use crate::service::{LogFormat, ModelLoader, Overrides, RunningServer, Settings};
+
+#[derive(Args, Debug)]
+pub struct ServeArgs {
+    /// TOML settings file (keys as in deploy/posematch.toml); POSEMATCH__<KEY> environment
+    /// variables override it, and these flags override both.
+    #[arg(long)]
+    config: Option<PathBuf>,
+    /// gRPC listen address (default 0.0.0.0:50051).
+    #[arg(long)]
+    listen: Option<String>,
+    /// Prometheus /metrics address (default 0.0.0.0:9090; port 0 = any free port).
+    #[arg(long)]
+    metrics_listen: Option<String>,
+    /// Weights file (.bpk, .pth, .safetensors); default: the weights embedded in the binary.
+    #[arg(long)]
+    weights: Option<PathBuf>,
+    /// Where registered templates are persisted (default ./data/templates).
+    #[arg(long)]
+    template_dir: Option<PathBuf>,
+}
+
+pub fn run(args: ServeArgs) -> Result<(), CliError> {
+    let overrides = Overrides {
+        listen: args.listen,
+        metrics_listen: args.metrics_listen,
+        weights: args.weights,
+        template_dir: args.template_dir,
+    };
+    let settings = Settings::load(args.config.as_deref(), std::env::vars(), &overrides)
+        .map_err(|e| CliError::Usage(e.to_string()))?;
+    init_logging(settings.log_format);
+    let loader = model_loader(&settings)?;
+    let runtime = tokio::runtime::Builder::new_multi_thread()
+        .enable_all()
+        .thread_name("posematch-rpc")
+        .build()
+        .map_err(|e| CliError::Usage(format!("cannot start the async runtime: {e}")))?;
+    runtime.block_on(async {
+        let mut server = RunningServer::start(&settings, loader)
+            .await
+            .map_err(|e| CliError::Usage(e.to_string()))?;
+        let outcome = tokio::select! {
+            ready = server.ready() => match ready {
+                Ok(()) => None,
+                Err(message) => Some(Err(CliError::Usage(message))),
+            },
+            _ = shutdown_signal() => Some(Ok(())),
+        };
+        let outcome = match outcome {
+            Some(outcome) => outcome,
+            None => {
+                shutdown_signal().await;
+                Ok(())
+            }
+        };
+        tracing::info!("shutting down; draining in-flight requests");
+        server
+            .shutdown(Duration::from_secs(settings.shutdown_grace_seconds))
+            .await;
+        outcome
+    })
+}
+
+/// Checks what can be checked before binding, then defers the (slow) load to the server.
+fn model_loader(settings: &Settings) -> Result<ModelLoader, CliError> {
+    let convention = parse_convention(&settings.convention).map_err(CliError::Usage)?;
+    let weights = (!settings.weights.is_empty()).then(|| PathBuf::from(&settings.weights));
+    if let Some(path) = &weights
+        && !path.is_file()
+    {
+        return Err(CliError::Usage(format!(
+            "weights file {} does not exist",
+            path.display()
+        )));
+    }
+    if weights.is_none() && default_weights().is_none() {
+        return Err(CliError::Usage(
+            "no weights given (--weights, weights = in the config, POSEMATCH__WEIGHTS) and this build has no default weights"
+                .into(),
+        ));
+    }
+    Ok(Box::new(move || {
+        let device = select_device().map_err(|e| e.to_string())?;
+        let model: Tdcm = match &weights {
+            Some(path) => load_weights(path, &device),
+            None => load_weights_from_bytes(
+                default_weights().expect("checked above"),
+                "embedded default weights",
+                &device,
+            ),
+        }
+        .map_err(|e| e.to_string())?;
+        Ok(Matcher::new(model, device, convention))
+    }))
+}
+
+fn init_logging(format: LogFormat) {
+    let filter = tracing_subscriber::EnvFilter::try_from_default_env()
+        .unwrap_or_else(|_| tracing_subscriber::EnvFilter::new("info"));
+    let builder = tracing_subscriber::fmt()
+        .with_env_filter(filter)
+        .with_writer(std::io::stderr);
+    let _ = match format {
+        LogFormat::Text => builder.try_init(),
+        LogFormat::Json => builder.json().try_init(),
+    };
+}
+
+async fn shutdown_signal() {
+    let ctrl_c = async {
+        let _ = tokio::signal::ctrl_c().await;
+    };
+    #[cfg(unix)]
+    let terminate = async {
+        match tokio::signal::unix::signal(tokio::signal::unix::SignalKind::terminate()) {
+            Ok(mut signal) => {
+                signal.recv().await;
+            }
+            Err(_) => std::future::pending::<()>().await,
+        }
+    };
+    #[cfg(not(unix))]
+    let terminate = std::future::pending::<()>();
+    tokio::select! {
+        _ = ctrl_c => {},
+        _ = terminate => {},
+    }
+}

@@ -1,0 +1,139 @@
+//! Prometheus metrics of one engine. Each engine owns its registry (no process-wide globals), so
+//! several servers in one process — the integration tests — count separately.
+
+use prometheus::{
+    Encoder, Histogram, HistogramOpts, HistogramVec, IntCounter, IntCounterVec, IntGauge, Opts,
+    Registry, TextEncoder,
+};
+
+/// Every metric the service exports on `/metrics`.
+#[derive(Clone)]
+pub struct Metrics {
+    registry: Registry,
+    /// Finished RPCs by method and gRPC status code name.
+    pub requests: IntCounterVec,
+    /// Wall time of each RPC, by method.
+    pub latency_seconds: HistogramVec,
+    /// Search images per forward pass.
+    pub batch_size: Histogram,
+    /// Wall time of each batch on the model thread (network, decoding, refinement).
+    pub batch_seconds: Histogram,
+    /// Match requests waiting for the model.
+    pub queue_depth: IntGauge,
+    /// Requests dropped before inference, by reason (`deadline`, `client_gone`, `queue_full`).
+    pub dropped: IntCounterVec,
+    pub cache_hits: IntCounter,
+    pub cache_misses: IntCounter,
+    pub cache_evictions: IntCounter,
+    /// Registered templates.
+    pub templates: IntGauge,
+}
+
+impl Default for Metrics {
+    fn default() -> Self {
+        Self::new()
+    }
+}
+
+impl Metrics {
+    pub fn new() -> Self {
+        let registry = Registry::new();
+        let latency_buckets = vec![
+            0.001, 0.0025, 0.005, 0.01, 0.025, 0.05, 0.075, 0.1, 0.15, 0.25, 0.5, 1.0, 2.5, 5.0,
+            10.0, 30.0,
+        ];
+        let requests = IntCounterVec::new(
+            Opts::new(
+                "posematch_requests_total",
+                "Finished RPCs by method and status code",
+            ),
+            &["rpc", "code"],
+        )
+        .expect("valid metric");
+        let latency_seconds = HistogramVec::new(
+            HistogramOpts::new("posematch_request_duration_seconds", "RPC wall time")
+                .buckets(latency_buckets.clone()),
+            &["rpc"],
+        )
+        .expect("valid metric");
+        let batch_size = Histogram::with_opts(
+            HistogramOpts::new("posematch_batch_size", "Search images per forward pass")
+                .buckets(vec![1.0, 2.0, 3.0, 4.0, 6.0, 8.0, 12.0, 16.0, 32.0]),
+        )
+        .expect("valid metric");
+        let batch_seconds = Histogram::with_opts(
+            HistogramOpts::new(
+                "posematch_batch_duration_seconds",
+                "Model-thread time per batch (network, decoding, refinement)",
+            )
+            .buckets(latency_buckets),
+        )
+        .expect("valid metric");
+        let queue_depth = IntGauge::new(
+            "posematch_queue_depth",
+            "Match requests waiting for the model",
+        )
+        .expect("valid metric");
+        let dropped = IntCounterVec::new(
+            Opts::new(
+                "posematch_dropped_total",
+                "Match requests dropped before inference, by reason",
+            ),
+            &["reason"],
+        )
+        .expect("valid metric");
+        let cache_hits = IntCounter::new(
+            "posematch_template_cache_hits_total",
+            "Matches whose template kernel was cached",
+        )
+        .expect("valid metric");
+        let cache_misses = IntCounter::new(
+            "posematch_template_cache_misses_total",
+            "Matches that had to encode their template first",
+        )
+        .expect("valid metric");
+        let cache_evictions = IntCounter::new(
+            "posematch_template_cache_evictions_total",
+            "Template kernels evicted from the bounded cache (re-encoded from disk when needed)",
+        )
+        .expect("valid metric");
+        let templates =
+            IntGauge::new("posematch_templates", "Registered templates").expect("valid metric");
+        for collector in [
+            Box::new(requests.clone()) as Box<dyn prometheus::core::Collector>,
+            Box::new(latency_seconds.clone()),
+            Box::new(batch_size.clone()),
+            Box::new(batch_seconds.clone()),
+            Box::new(queue_depth.clone()),
+            Box::new(dropped.clone()),
+            Box::new(cache_hits.clone()),
+            Box::new(cache_misses.clone()),
+            Box::new(cache_evictions.clone()),
+            Box::new(templates.clone()),
+        ] {
+            registry.register(collector).expect("unique metric names");
+        }
+        Self {
+            registry,
+            requests,
+            latency_seconds,
+            batch_size,
+            batch_seconds,
+            queue_depth,
+            dropped,
+            cache_hits,
+            cache_misses,
+            cache_evictions,
+            templates,
+        }
+    }
+
+    /// The Prometheus text exposition of every metric.
+    pub fn render(&self) -> String {
+        let mut out = Vec::new();
+        TextEncoder::new()
+            .encode(&self.registry.gather(), &mut out)
+            .expect("text encoding into memory cannot fail");
+        String::from_utf8(out).expect("the text format is UTF-8")
+    }
+}

@@ -1,0 +1,332 @@
+//! `posematch.v1.PoseMatcher`: each RPC converts its request, calls the engine, converts the
+//! answer, and records one span, one request count and one latency sample.
+
+use std::pin::Pin;
+use std::sync::{Arc, OnceLock};
+use std::time::Instant;
+
+use tokio::sync::mpsc;
+use tokio_stream::wrappers::ReceiverStream;
+use tokio_stream::{Stream, StreamExt};
+use tonic::{Request, Response, Status, Streaming};
+use tracing::Instrument;
+
+use super::convert::{
+    deadline_of, image_from_proto, options_from_proto, pose_to_proto, status_of, template_info,
+};
+use super::proto::{self, pose_matcher_server::PoseMatcher};
+use crate::engine::{Engine, EngineError, Metrics};
+
+pub struct Api {
+    engine: Arc<OnceLock<Arc<Engine>>>,
+    metrics: Metrics,
+    max_image_pixels: u64,
+}
+
+impl Api {
+    pub fn new(
+        engine: Arc<OnceLock<Arc<Engine>>>,
+        metrics: Metrics,
+        max_image_pixels: u64,
+    ) -> Self {
+        Self {
+            engine,
+            metrics,
+            max_image_pixels,
+        }
+    }
+
+    fn engine(&self) -> Result<Arc<Engine>, Status> {
+        self.engine
+            .get()
+            .cloned()
+            .ok_or_else(|| Status::unavailable("the model is still loading; retry in a moment"))
+    }
+
+    /// Counts and times one finished RPC.
+    fn record<T>(&self, rpc: &str, started: Instant, result: &Result<T, Status>) {
+        let code = match result {
+            Ok(_) => tonic::Code::Ok,
+            Err(status) => status.code(),
+        };
+        self.metrics
+            .requests
+            .with_label_values(&[rpc, code_name(code)])
+            .inc();
+        self.metrics
+            .latency_seconds
+            .with_label_values(&[rpc])
+            .observe(started.elapsed().as_secs_f64());
+        if let Err(status) = result {
+            tracing::info!(
+                rpc,
+                code = code_name(code),
+                message = status.message(),
+                "request failed"
+            );
+        }
+    }
+}
+
+fn code_name(code: tonic::Code) -> &'static str {
+    use tonic::Code::*;
+    match code {
+        Ok => "OK",
+        Cancelled => "CANCELLED",
+        Unknown => "UNKNOWN",
+        InvalidArgument => "INVALID_ARGUMENT",
+        DeadlineExceeded => "DEADLINE_EXCEEDED",
+        NotFound => "NOT_FOUND",
+        AlreadyExists => "ALREADY_EXISTS",
+        PermissionDenied => "PERMISSION_DENIED",
+        ResourceExhausted => "RESOURCE_EXHAUSTED",
+        FailedPrecondition => "FAILED_PRECONDITION",
+        Aborted => "ABORTED",
+        OutOfRange => "OUT_OF_RANGE",
+        Unimplemented => "UNIMPLEMENTED",
+        Internal => "INTERNAL",
+        Unavailable => "UNAVAILABLE",
+        DataLoss => "DATA_LOSS",
+        Unauthenticated => "UNAUTHENTICATED",
+    }
+}
+
+/// Decodes on a blocking thread: a 40 MP PNG takes long enough to stall the runtime.
+async fn decode(
+    image: Option<proto::Image>,
+    what: &'static str,
+    max_pixels: u64,
+) -> Result<crate::imaging::RgbImage32, EngineError> {
+    tokio::task::spawn_blocking(move || image_from_proto(image, what, max_pixels))
+        .await
+        .map_err(|e| EngineError::Internal(format!("image decoding failed: {e}")))?
+}
+
+/// One match, shared by `Match` and `MatchStream`.
+async fn run_match(
+    engine: &Engine,
+    request: proto::MatchRequest,
+    received: Instant,
+    deadline: Option<Instant>,
+    max_pixels: u64,
+) -> Result<proto::MatchResponse, Status> {
+    let work = async {
+        if request.template_id.is_empty() {
+            return Err(EngineError::InvalidArgument(
+                "template_id is empty; give the ID of a registered template".into(),
+            ));
+        }
+        let (options, roi) = options_from_proto(request.options)?;
+        let image = decode(request.image, "image", max_pixels).await?;
+        let (width, height) = (image.width, image.height);
+        let decode_ms = received.elapsed().as_secs_f64() * 1e3;
+        let answer = engine
+            .match_image(&request.template_id, image, options, roi, deadline)
+            .await?;
+        let span = tracing::Span::current();
+        span.record("batch_size", answer.batch_size);
+        span.record("poses", answer.poses.len());
+        let t = answer.timings;
+        Ok(proto::MatchResponse {
+            request_id: request.request_id.clone(),
+            template_id: request.template_id.clone(),
+            poses: answer.poses.iter().map(pose_to_proto).collect(),
+            image_width: width,
+            image_height: height,
+            timings: Some(proto::Timings {
+                decode_ms: decode_ms as f32,
+                queue_ms: answer.queue_ms as f32,
+                network_ms: (t.prepare_ms + t.network_ms) as f32,
+                postprocess_ms: (t.decode_ms + t.refine_ms) as f32,
+                total_ms: (received.elapsed().as_secs_f64() * 1e3) as f32,
+            }),
+        })
+    };
+    let result = match deadline {
+        // Answer DEADLINE_EXCEEDED ourselves, a hair before the transport gives up on us.
+        Some(deadline) => {
+            let ours = deadline
+                .checked_sub(std::time::Duration::from_millis(2))
+                .unwrap_or(deadline);
+            match tokio::time::timeout_at(ours.into(), work).await {
+                Ok(result) => result,
+                Err(_) => Err(EngineError::DeadlineExceeded(
+                    "the request's deadline (grpc-timeout) passed before it was answered".into(),
+                )),
+            }
+        }
+        None => work.await,
+    };
+    result.map_err(status_of)
+}
+
+type MatchStreamOut = Pin<Box<dyn Stream<Item = Result<proto::MatchResponse, Status>> + Send>>;
+
+#[tonic::async_trait]
+impl PoseMatcher for Api {
+    async fn register_template(
+        &self,
+        request: Request<proto::RegisterTemplateRequest>,
+    ) -> Result<Response<proto::TemplateInfo>, Status> {
+        let started = Instant::now();
+        let request = request.into_inner();
+        let span = tracing::info_span!("register_template", template_id = %request.template_id);
+        let result = async {
+            let engine = self.engine()?;
+            let image = decode(request.image, "template image", self.max_image_pixels)
+                .await
+                .map_err(status_of)?;
+            let labels = request.labels.into_iter().collect();
+            engine
+                .register(&request.template_id, image, request.replace, labels)
+                .await
+                .map(|meta| Response::new(template_info(meta)))
+                .map_err(status_of)
+        }
+        .instrument(span)
+        .await;
+        self.record("RegisterTemplate", started, &result);
+        result
+    }
+
+    async fn get_template(
+        &self,
+        request: Request<proto::GetTemplateRequest>,
+    ) -> Result<Response<proto::TemplateInfo>, Status> {
+        let started = Instant::now();
+        let result = self.engine().and_then(|engine| {
+            engine
+                .get(&request.get_ref().template_id)
+                .map(|meta| Response::new(template_info(meta)))
+                .map_err(status_of)
+        });
+        self.record("GetTemplate", started, &result);
+        result
+    }
+
+    async fn list_templates(
+        &self,
+        request: Request<proto::ListTemplatesRequest>,
+    ) -> Result<Response<proto::ListTemplatesResponse>, Status> {
+        let started = Instant::now();
+        let request = request.into_inner();
+        let result = self.engine().and_then(|engine| {
+            engine
+                .list(request.page_size as usize, &request.page_token)
+                .map(|(page, next_page_token)| {
+                    Response::new(proto::ListTemplatesResponse {
+                        templates: page.into_iter().map(template_info).collect(),
+                        next_page_token,
+                    })
+                })
+                .map_err(status_of)
+        });
+        self.record("ListTemplates", started, &result);
+        result
+    }
+
+    async fn delete_template(
+        &self,
+        request: Request<proto::DeleteTemplateRequest>,
+    ) -> Result<Response<proto::DeleteTemplateResponse>, Status> {
+        let started = Instant::now();
+        let result = async {
+            let engine = self.engine()?;
+            engine
+                .delete(&request.get_ref().template_id)
+                .await
+                .map(|deleted| Response::new(proto::DeleteTemplateResponse { deleted }))
+                .map_err(status_of)
+        }
+        .await;
+        self.record("DeleteTemplate", started, &result);
+        result
+    }
+
+    async fn r#match(
+        &self,
+        request: Request<proto::MatchRequest>,
+    ) -> Result<Response<proto::MatchResponse>, Status> {
+        let received = Instant::now();
+        let deadline = deadline_of(request.metadata(), received);
+        let request = request.into_inner();
+        let span = tracing::info_span!(
+            "match",
+            request_id = %request.request_id,
+            template_id = %request.template_id,
+            batch_size = tracing::field::Empty,
+            poses = tracing::field::Empty,
+        );
+        let result = async {
+            let engine = self.engine()?;
+            run_match(&engine, request, received, deadline, self.max_image_pixels).await
+        }
+        .instrument(span.clone())
+        .await
+        .map(Response::new);
+        span.in_scope(|| {
+            tracing::debug!(
+                ms = received.elapsed().as_secs_f64() * 1e3,
+                "match answered"
+            )
+        });
+        self.record("Match", received, &result);
+        result
+    }
+
+    type MatchStreamStream = MatchStreamOut;
+
+    /// Requests of one stream are answered in order, one at a time; an invalid request ends the
+    /// stream with its status (the message names its request_id) so a line never silently
+    /// skips a frame.
+    async fn match_stream(
+        &self,
+        request: Request<Streaming<proto::MatchRequest>>,
+    ) -> Result<Response<Self::MatchStreamStream>, Status> {
+        let engine = self.engine()?;
+        let mut inbound = request.into_inner();
+        let (sender, receiver) = mpsc::channel(16);
+        let metrics = self.metrics.clone();
+        let max_pixels = self.max_image_pixels;
+        let counter = Api {
+            engine: self.engine.clone(),
+            metrics,
+            max_image_pixels: max_pixels,
+        };
+        tokio::spawn(async move {
+            while let Some(next) = inbound.next().await {
+                let request = match next {
+                    Ok(request) => request,
+                    Err(status) => {
+                        tracing::debug!(%status, "match stream ended by the client");
+                        break;
+                    }
+                };
+                let received = Instant::now();
+                let request_id = request.request_id.clone();
+                let span = tracing::info_span!(
+                    "match_stream",
+                    request_id = %request.request_id,
+                    template_id = %request.template_id,
+                    batch_size = tracing::field::Empty,
+                    poses = tracing::field::Empty,
+                );
+                let result = run_match(&engine, request, received, None, max_pixels)
+                    .instrument(span)
+                    .await
+                    .map_err(|s| {
+                        Status::new(
+                            s.code(),
+                            format!("request_id `{request_id}`: {}", s.message()),
+                        )
+                    });
+                counter.record("MatchStream", received, &result);
+                let failed = result.is_err();
+                if sender.send(result).await.is_err() || failed {
+                    break;
+                }
+            }
+        });
+        Ok(Response::new(Box::pin(ReceiverStream::new(receiver))))
+    }
+}

@@ -1,0 +1,353 @@
+//! Between protobuf messages and the engine's types: images (encoded or raw camera buffers),
+//! options with the proto's "zero means default" rule, poses, template metadata, and the one
+//! table mapping [`EngineError`] to gRPC status codes.
+
+use std::time::{Duration, Instant};
+
+use tonic::Status;
+
+use super::proto;
+use crate::engine::store::TemplateMeta;
+use crate::engine::{EngineError, Roi};
+use crate::geometry::Pose;
+use crate::imaging::{DecodeError, ImageLimits, RgbImage32, decode_image};
+use crate::matcher::{AngleRange, MatchOptions, ScaleRange};
+
+pub fn status_of(error: EngineError) -> Status {
+    let message = error.to_string();
+    match error {
+        EngineError::InvalidArgument(_) => Status::invalid_argument(message),
+        EngineError::NotFound(_) => Status::not_found(message),
+        EngineError::AlreadyExists(_) => Status::already_exists(message),
+        EngineError::ResourceExhausted(_) => Status::resource_exhausted(message),
+        EngineError::DeadlineExceeded(_) => Status::deadline_exceeded(message),
+        EngineError::Unavailable(_) => Status::unavailable(message),
+        EngineError::Internal(_) => Status::internal(message),
+    }
+}
+
+/// Decodes a request's image. `what` names the field in errors ("image", "template image").
+pub fn image_from_proto(
+    image: Option<proto::Image>,
+    what: &str,
+    max_pixels: u64,
+) -> Result<RgbImage32, EngineError> {
+    let invalid = |m: String| EngineError::InvalidArgument(m);
+    let data = image.and_then(|i| i.data).ok_or_else(|| {
+        invalid(format!(
+            "{what} is missing: set {what}.encoded (PNG/JPEG/BMP/TIFF/PNM bytes) or {what}.raw"
+        ))
+    })?;
+    let limits = ImageLimits {
+        max_pixels,
+        min_side: 1,
+    };
+    match data {
+        proto::image::Data::Encoded(bytes) => {
+            decode_image(&bytes, what, limits).map_err(|e: DecodeError| invalid(e.to_string()))
+        }
+        proto::image::Data::Raw(raw) => raw_to_rgb(&raw, what, max_pixels),
+    }
+}
+
+fn raw_to_rgb(
+    raw: &proto::RawImage,
+    what: &str,
+    max_pixels: u64,
+) -> Result<RgbImage32, EngineError> {
+    use proto::raw_image::Format;
+    let invalid = |m: String| Err(EngineError::InvalidArgument(format!("{what}.raw: {m}")));
+    let (w, h) = (raw.width, raw.height);
+    if w == 0 || h == 0 {
+        return invalid(format!("{w}x{h} is empty; set width and height"));
+    }
+    let pixels = w as u64 * h as u64;
+    if pixels > max_pixels {
+        return invalid(format!(
+            "{w}x{h} = {pixels} pixels is above the limit of {max_pixels}; crop or downscale"
+        ));
+    }
+    let format = Format::try_from(raw.format).unwrap_or(Format::Unspecified);
+    let bytes_per_pixel = match format {
+        Format::Gray8 => 1,
+        Format::Rgb8 | Format::Bgr8 => 3,
+        Format::Gray16 => 2,
+        Format::Unspecified => {
+            return invalid(format!(
+                "format {} is not set or unknown; use GRAY8, RGB8, BGR8 or GRAY16",
+                raw.format
+            ));
+        }
+    };
+    let expected = pixels * bytes_per_pixel;
+    if raw.pixels.len() as u64 != expected {
+        return invalid(format!(
+            "{} bytes of pixels, but {w}x{h} {format:?} needs {expected} (rows packed, no padding)",
+            raw.pixels.len(),
+            format = format.as_str_name()
+        ));
+    }
+    let p = &raw.pixels;
+    let scale8 = 1.0 / 255.0;
+    let values: Vec<f32> = match format {
+        Format::Gray8 => p.iter().flat_map(|&g| [g as f32 * scale8; 3]).collect(),
+        Format::Rgb8 => p.iter().map(|&v| v as f32 * scale8).collect(),
+        Format::Bgr8 => p
+            .chunks_exact(3)
+            .flat_map(|c| [c[2], c[1], c[0]].map(|v| v as f32 * scale8))
+            .collect(),
+        Format::Gray16 => p
+            .chunks_exact(2)
+            .flat_map(|c| [u16::from_le_bytes([c[0], c[1]]) as f32 / 65535.0; 3])
+            .collect(),
+        Format::Unspecified => unreachable!("rejected above"),
+    };
+    Ok(RgbImage32::new(w, h, values))
+}
+
+/// Options with the proto's defaults for zero values; anything out of range is an error that
+/// names the field.
+pub fn options_from_proto(
+    options: Option<proto::MatchOptions>,
+) -> Result<(MatchOptions, Option<Roi>), EngineError> {
+    let o = options.unwrap_or_default();
+    let invalid = |m: String| Err(EngineError::InvalidArgument(m));
+    let defaults = MatchOptions::default();
+    let finite = [
+        ("min_score", o.min_score),
+        ("max_overlap", o.max_overlap),
+        ("angle_start_deg", o.angle_start_deg),
+        ("angle_extent_deg", o.angle_extent_deg),
+        ("scale_min", o.scale_min),
+        ("scale_max", o.scale_max),
+    ];
+    if let Some((name, value)) = finite.iter().find(|(_, v)| !v.is_finite()) {
+        return invalid(format!("options.{name} is {value}; give a finite number"));
+    }
+    let angle_range = match o.angle_extent_deg {
+        0.0 => None,
+        e if !(0.0..=360.0).contains(&e) => {
+            return invalid(format!(
+                "options.angle_extent_deg {e} is invalid: use (0, 360], or 0 for every angle"
+            ));
+        }
+        e => Some(AngleRange {
+            start_deg: o.angle_start_deg,
+            extent_deg: e,
+        }),
+    };
+    let scale_range = match (o.scale_min, o.scale_max) {
+        (a, b) if a == 0.0 && b == 0.0 => None,
+        (a, b) if a == 0.0 || b == 0.0 => {
+            return invalid(format!(
+                "options.scale_min {a} / scale_max {b}: give both (e.g. 0.8 and 1.25) or neither"
+            ));
+        }
+        (a, b) => Some(ScaleRange::new(a, b).map_err(|m| {
+            EngineError::InvalidArgument(format!("options.scale_min/scale_max: {m}"))
+        })?),
+    };
+    let options = MatchOptions {
+        max_instances: match o.max_instances {
+            0 => defaults.max_instances,
+            n => n as usize,
+        },
+        min_score: if o.min_score == 0.0 {
+            defaults.min_score
+        } else {
+            o.min_score
+        },
+        max_overlap: if o.max_overlap == 0.0 {
+            defaults.max_overlap
+        } else {
+            o.max_overlap
+        },
+        angle_range,
+        scale_range,
+        refine: !o.no_refine,
+    };
+    options
+        .validate()
+        .map_err(|m| EngineError::InvalidArgument(format!("options.{m}")))?;
+    let roi = o.roi.and_then(|r| {
+        (r.width != 0 || r.height != 0 || r.x != 0 || r.y != 0).then_some(Roi {
+            x: r.x,
+            y: r.y,
+            width: r.width,
+            height: r.height,
+        })
+    });
+    Ok((options, roi))
+}
+
+pub fn pose_to_proto(pose: &Pose) -> proto::Pose {
+    proto::Pose {
+        x: pose.x,
+        y: pose.y,
+        angle_deg: pose.angle_deg,
+        scale_x: pose.scale_x,
+        scale_y: pose.scale_y,
+        score: pose.score,
+    }
+}
+
+pub fn template_info(meta: TemplateMeta) -> proto::TemplateInfo {
+    proto::TemplateInfo {
+        template_id: meta.template_id,
+        width: meta.width,
+        height: meta.height,
+        labels: meta.labels.into_iter().collect(),
+        content_sha256: meta.content_sha256,
+        created_unix_ms: meta.created_unix_ms,
+    }
+}
+
+/// The request's deadline from its `grpc-timeout` header ("100m" = 100 ms; units H M S m u n).
+pub fn deadline_of(metadata: &tonic::metadata::MetadataMap, received: Instant) -> Option<Instant> {
+    let value = metadata.get("grpc-timeout")?.to_str().ok()?;
+    let (digits, unit) = value.split_at(value.len().checked_sub(1)?);
+    let amount: u64 = digits.parse().ok()?;
+    let timeout = match unit {
+        "H" => Duration::from_secs(amount.saturating_mul(3600)),
+        "M" => Duration::from_secs(amount.saturating_mul(60)),
+        "S" => Duration::from_secs(amount),
+        "m" => Duration::from_millis(amount),
+        "u" => Duration::from_micros(amount),
+        "n" => Duration::from_nanos(amount),
+        _ => return None,
+    };
+    received.checked_add(timeout)
+}
+
+#[cfg(test)]
+mod tests {
+    use super::*;
+
+    fn raw(
+        width: u32,
+        height: u32,
+        format: proto::raw_image::Format,
+        pixels: Vec<u8>,
+    ) -> proto::Image {
+        proto::Image {
+            data: Some(proto::image::Data::Raw(proto::RawImage {
+                width,
+                height,
+                format: format as i32,
+                pixels,
+            })),
+        }
+    }
+
+    #[test]
+    fn raw_formats_agree_with_each_other() {
+        use proto::raw_image::Format;
+        let rgb = image_from_proto(
+            Some(raw(2, 1, Format::Rgb8, vec![10, 20, 30, 40, 50, 60])),
+            "image",
+            100,
+        )
+        .unwrap();
+        let bgr = image_from_proto(
+            Some(raw(2, 1, Format::Bgr8, vec![30, 20, 10, 60, 50, 40])),
+            "image",
+            100,
+        )
+        .unwrap();
+        assert_eq!(rgb.pixels, bgr.pixels);
+        let g8 = image_from_proto(Some(raw(1, 1, Format::Gray8, vec![255])), "image", 100).unwrap();
+        let g16 = image_from_proto(
+            Some(raw(1, 1, Format::Gray16, vec![255, 255])),
+            "image",
+            100,
+        )
+        .unwrap();
+        assert_eq!(g8.pixels, vec![1.0; 3]);
+        assert_eq!(g16.pixels, vec![1.0; 3]);
+    }
+
+    #[test]
+    fn bad_raw_images_say_what_is_wrong() {
+        use proto::raw_image::Format;
+        let err = |image| {
+            image_from_proto(Some(image), "image", 100)
+                .unwrap_err()
+                .to_string()
+        };
+        assert!(err(raw(2, 2, Format::Rgb8, vec![0; 5])).contains("needs 12"));
+        assert!(err(raw(2, 2, Format::Unspecified, vec![0; 4])).contains("GRAY8"));
+        assert!(err(raw(20, 20, Format::Gray8, vec![0; 400])).contains("limit"));
+        assert!(err(raw(0, 2, Format::Gray8, vec![])).contains("empty"));
+        assert!(
+            image_from_proto(None, "image", 100)
+                .unwrap_err()
+                .to_string()
+                .contains("missing")
+        );
+    }
+
+    #[test]
+    fn zero_options_are_defaults_and_absurd_ones_are_refused() {
+        let (o, roi) = options_from_proto(None).unwrap();
+        assert_eq!(o, MatchOptions::default());
+        assert!(roi.is_none());
+        let bad = |o: proto::MatchOptions| options_from_proto(Some(o)).unwrap_err().to_string();
+        assert!(
+            bad(proto::MatchOptions {
+                min_score: 1.5,
+                ..Default::default()
+            })
+            .contains("min_score")
+        );
+        assert!(
+            bad(proto::MatchOptions {
+                max_instances: 5000,
+                ..Default::default()
+            })
+            .contains("max_instances")
+        );
+        assert!(
+            bad(proto::MatchOptions {
+                angle_extent_deg: 400.0,
+                ..Default::default()
+            })
+            .contains("angle_extent_deg")
+        );
+        assert!(
+            bad(proto::MatchOptions {
+                scale_min: 0.5,
+                ..Default::default()
+            })
+            .contains("both")
+        );
+        assert!(
+            bad(proto::MatchOptions {
+                scale_min: 3.0,
+                scale_max: 2.0,
+                ..Default::default()
+            })
+            .contains("scale")
+        );
+        assert!(
+            bad(proto::MatchOptions {
+                min_score: f32::NAN,
+                ..Default::default()
+            })
+            .contains("finite")
+        );
+    }
+
+    #[test]
+    fn grpc_timeout_header_becomes_a_deadline() {
+        let now = Instant::now();
+        let mut md = tonic::metadata::MetadataMap::new();
+        assert_eq!(deadline_of(&md, now), None);
+        md.insert("grpc-timeout", "250m".parse().unwrap());
+        assert_eq!(
+            deadline_of(&md, now),
+            Some(now + Duration::from_millis(250))
+        );
+        md.insert("grpc-timeout", "2S".parse().unwrap());
+        assert_eq!(deadline_of(&md, now), Some(now + Duration::from_secs(2)));
+    }
+}

@@ -1,0 +1,219 @@
+//! The gRPC service (`posematch.v1.PoseMatcher`) plus standard health and reflection, and the
+//! Prometheus endpoint. This layer converts messages ([`convert`]) and records metrics and
+//! traces; the work itself is the [`Engine`]'s.
+//!
+//! Start-up order matters to orchestrators: the ports are bound first and health reports
+//! NOT_SERVING while the model loads; it turns SERVING only once the engine can answer.
+
+mod api;
+pub mod convert;
+pub mod settings;
+
+use std::net::SocketAddr;
+use std::sync::{Arc, OnceLock};
+use std::time::Duration;
+
+use tokio::net::TcpListener;
+use tokio::sync::watch;
+use tokio_stream::wrappers::TcpListenerStream;
+
+use crate::engine::{Engine, EngineConfig, Metrics};
+use crate::matcher::Matcher;
+pub use settings::{LogFormat, Overrides, Settings};
+
+/// Generated messages and service traits of `proto/posematch/v1/posematch.proto`.
+pub mod proto {
+    #![allow(clippy::all, missing_docs)]
+    tonic::include_proto!("posematch.v1");
+    /// Encoded descriptors of the API, served by reflection.
+    pub const FILE_DESCRIPTOR_SET: &[u8] =
+        tonic::include_file_descriptor_set!("posematch_descriptor");
+}
+
+/// Builds the model; runs on a blocking thread after the ports are bound.
+pub type ModelLoader = Box<dyn FnOnce() -> Result<Matcher, String> + Send>;
+
+#[derive(Debug, thiserror::Error)]
+pub enum ServeError {
+    #[error("cannot listen on {addr}: {source}")]
+    Bind {
+        addr: String,
+        #[source]
+        source: std::io::Error,
+    },
+    #[error("{0}")]
+    Setup(String),
+}
+
+/// A started server: its bound addresses and the way to stop it.
+pub struct RunningServer {
+    pub grpc_addr: SocketAddr,
+    /// `None` when the metrics endpoint is disabled.
+    pub metrics_addr: Option<SocketAddr>,
+    shutdown: watch::Sender<bool>,
+    grpc: tokio::task::JoinHandle<Result<(), tonic::transport::Error>>,
+    ready: watch::Receiver<Option<Result<(), String>>>,
+}
+
+impl RunningServer {
+    /// Binds the ports, starts serving (NOT_SERVING until the model is loaded) and loads the
+    /// model in the background.
+    pub async fn start(settings: &Settings, loader: ModelLoader) -> Result<Self, ServeError> {
+        let listener = TcpListener::bind(&settings.listen)
+            .await
+            .map_err(|source| ServeError::Bind {
+                addr: settings.listen.clone(),
+                source,
+            })?;
+        let grpc_addr = listener.local_addr().map_err(|source| ServeError::Bind {
+            addr: settings.listen.clone(),
+            source,
+        })?;
+        let metrics = Metrics::new();
+        let (shutdown, shutdown_rx) = watch::channel(false);
+
+        let metrics_addr = if settings.metrics_listen.is_empty() {
+            None
+        } else {
+            let listener = TcpListener::bind(&settings.metrics_listen)
+                .await
+                .map_err(|source| ServeError::Bind {
+                    addr: settings.metrics_listen.clone(),
+                    source,
+                })?;
+            let addr = listener.local_addr().ok();
+            tokio::spawn(serve_metrics(
+                listener,
+                metrics.clone(),
+                shutdown_rx.clone(),
+            ));
+            addr
+        };
+
+        let (health, health_service) = tonic_health::server::health_reporter();
+        health
+            .set_service_status("", tonic_health::ServingStatus::NotServing)
+            .await;
+        health
+            .set_not_serving::<proto::pose_matcher_server::PoseMatcherServer<api::Api>>()
+            .await;
+        let reflection_v1 = tonic_reflection::server::Builder::configure()
+            .register_encoded_file_descriptor_set(proto::FILE_DESCRIPTOR_SET)
+            .register_encoded_file_descriptor_set(tonic_health::pb::FILE_DESCRIPTOR_SET)
+            .build_v1()
+            .map_err(|e| ServeError::Setup(e.to_string()))?;
+        let reflection_v1alpha = tonic_reflection::server::Builder::configure()
+            .register_encoded_file_descriptor_set(proto::FILE_DESCRIPTOR_SET)
+            .register_encoded_file_descriptor_set(tonic_health::pb::FILE_DESCRIPTOR_SET)
+            .build_v1alpha()
+            .map_err(|e| ServeError::Setup(e.to_string()))?;
+
+        let engine: Arc<OnceLock<Arc<Engine>>> = Arc::new(OnceLock::new());
+        let api = api::Api::new(engine.clone(), metrics.clone(), settings.max_image_pixels);
+        let pose_matcher = proto::pose_matcher_server::PoseMatcherServer::new(api)
+            .max_decoding_message_size(settings.max_message_bytes)
+            .max_encoding_message_size(settings.max_message_bytes);
+
+        let mut stop = shutdown_rx.clone();
+        let grpc = tokio::spawn(
+            tonic::transport::Server::builder()
+                .add_service(health_service)
+                .add_service(reflection_v1)
+                .add_service(reflection_v1alpha)
+                .add_service(pose_matcher)
+                .serve_with_incoming_shutdown(TcpListenerStream::new(listener), async move {
+                    let _ = stop.wait_for(|s| *s).await;
+                }),
+        );
+
+        let (ready_tx, ready) = watch::channel(None);
+        let config = EngineConfig {
+            max_batch_size: settings.max_batch_size,
+            queue_size: settings.queue_size,
+            cache_size: settings.cache_size,
+            template_dir: settings.template_dir.clone(),
+        };
+        tokio::spawn(async move {
+            let built = tokio::task::spawn_blocking(move || {
+                let matcher = loader()?;
+                Engine::start(&config, matcher, metrics).map_err(|e| e.to_string())
+            })
+            .await
+            .map_err(|e| format!("model loading failed: {e}"))
+            .and_then(|r| r);
+            match built {
+                Ok(built) => {
+                    let _ = engine.set(Arc::new(built));
+                    health
+                        .set_service_status("", tonic_health::ServingStatus::Serving)
+                        .await;
+                    health
+                        .set_serving::<proto::pose_matcher_server::PoseMatcherServer<api::Api>>()
+                        .await;
+                    tracing::info!("model loaded; serving");
+                    let _ = ready_tx.send(Some(Ok(())));
+                }
+                Err(message) => {
+                    tracing::error!(%message, "the model could not be loaded");
+                    let _ = ready_tx.send(Some(Err(message)));
+                }
+            }
+        });
+        tracing::info!(%grpc_addr, metrics_addr = ?metrics_addr, "listening");
+        Ok(Self {
+            grpc_addr,
+            metrics_addr,
+            shutdown,
+            grpc,
+            ready,
+        })
+    }
+
+    /// Waits until the model is loaded (or failed to load).
+    pub async fn ready(&mut self) -> Result<(), String> {
+        let state = self
+            .ready
+            .wait_for(Option::is_some)
+            .await
+            .map_err(|_| "the loader stopped".to_string())?;
+        state.clone().expect("checked is_some")
+    }
+
+    /// Stops accepting connections and waits up to `grace` for in-flight requests to finish.
+    pub async fn shutdown(self, grace: Duration) {
+        let _ = self.shutdown.send(true);
+        match tokio::time::timeout(grace, self.grpc).await {
+            Ok(Ok(Ok(()))) => tracing::info!("drained; stopped"),
+            Ok(Ok(Err(e))) => tracing::warn!(error = %e, "server ended with an error"),
+            Ok(Err(e)) => tracing::warn!(error = %e, "server task failed"),
+            Err(_) => tracing::warn!(?grace, "in-flight requests did not finish in time"),
+        }
+    }
+}
+
+async fn serve_metrics(listener: TcpListener, metrics: Metrics, mut stop: watch::Receiver<bool>) {
+    use axum::routing::get;
+    let router = axum::Router::new().route(
+        "/metrics",
+        get(move || {
+            let metrics = metrics.clone();
+            async move {
+                (
+                    [(
+                        axum::http::header::CONTENT_TYPE,
+                        "text/plain; version=0.0.4; charset=utf-8",
+                    )],
+                    metrics.render(),
+                )
+            }
+        }),
+    );
+    let result = axum::serve(listener, router)
+        .with_graceful_shutdown(async move {
+            let _ = stop.wait_for(|s| *s).await;
+        })
+        .await;
+    if let Err(e) = result {
+        tracing::warn!(error = %e, "metrics endpoint stopped");
+    }
+}

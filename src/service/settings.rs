@@ -1,0 +1,246 @@
+//! Service configuration, layered lowest to highest: embedded defaults, an optional TOML file
+//! (`--config`), `POSEMATCH__*` environment variables (`POSEMATCH__MAX_BATCH_SIZE=2`), then
+//! command-line flags. One flat namespace so every key has the same name in all four places.
+
+use std::path::{Path, PathBuf};
+
+use serde::{Deserialize, Serialize};
+
+/// Log line format.
+#[derive(Debug, Clone, Copy, PartialEq, Eq, Serialize, Deserialize)]
+#[serde(rename_all = "lowercase")]
+pub enum LogFormat {
+    Text,
+    Json,
+}
+
+/// Everything `posematch serve` can be told.
+#[derive(Debug, Clone, PartialEq, Serialize, Deserialize)]
+#[serde(deny_unknown_fields)]
+pub struct Settings {
+    /// gRPC listen address.
+    pub listen: String,
+    /// Prometheus `/metrics` listen address; port 0 picks a free port; empty disables it.
+    pub metrics_listen: String,
+    /// Weights file; empty means the weights embedded in the binary.
+    pub weights: String,
+    /// Input convention of the weights: `imagenet` or `gray`.
+    pub convention: String,
+    /// Most search images in one forward pass. 1 measured best on 2 cores (see README).
+    pub max_batch_size: usize,
+    /// Most match requests waiting for the model; more get RESOURCE_EXHAUSTED.
+    pub queue_size: usize,
+    /// Most encoded template kernels kept in memory (each ~31 kB plus the template in grey).
+    pub cache_size: u64,
+    /// Where registered templates are persisted.
+    pub template_dir: PathBuf,
+    /// Largest accepted image, in pixels (checked from the header before decoding).
+    pub max_image_pixels: u64,
+    /// Largest accepted gRPC message, in bytes.
+    pub max_message_bytes: usize,
+    /// `text` or `json`.
+    pub log_format: LogFormat,
+    /// Seconds to let in-flight requests finish after SIGTERM/Ctrl-C.
+    pub shutdown_grace_seconds: u64,
+}
+
+/// The embedded defaults, as a TOML document (also what `deploy/posematch.toml` starts from).
+pub const DEFAULTS_TOML: &str = r#"
+listen = "0.0.0.0:50051"
+metrics_listen = "0.0.0.0:9090"
+weights = ""
+convention = "imagenet"
+max_batch_size = 1
+queue_size = 64
+cache_size = 1024
+template_dir = "./data/templates"
+max_image_pixels = 40000000
+max_message_bytes = 67108864
+log_format = "text"
+shutdown_grace_seconds = 30
+"#;
+
+/// Flag values that override the file and environment (`None` = not given).
+#[derive(Debug, Clone, Default)]
+pub struct Overrides {
+    pub listen: Option<String>,
+    pub metrics_listen: Option<String>,
+    pub weights: Option<PathBuf>,
+    pub template_dir: Option<PathBuf>,
+}
+
+#[derive(Debug, thiserror::Error)]
+#[error("configuration: {0}")]
+pub struct SettingsError(pub String);
+
+impl Settings {
+    /// Reads the layers; `environment` is normally `std::env::vars()` (a parameter so tests do
+    /// not have to mutate the process environment).
+    pub fn load(
+        file: Option<&Path>,
+        environment: impl IntoIterator<Item = (String, String)>,
+        overrides: &Overrides,
+    ) -> Result<Self, SettingsError> {
+        use config::{Config, Environment, File, FileFormat};
+        let mut builder =
+            Config::builder().add_source(File::from_str(DEFAULTS_TOML, FileFormat::Toml));
+        if let Some(path) = file {
+            if !path.is_file() {
+                return Err(SettingsError(format!(
+                    "{}: no such file (given with --config)",
+                    path.display()
+                )));
+            }
+            builder = builder.add_source(File::from(path).format(FileFormat::Toml));
+        }
+        let environment: config::Map<String, String> = environment
+            .into_iter()
+            .filter(|(k, _)| k.starts_with("POSEMATCH__"))
+            .collect();
+        builder = builder.add_source(
+            Environment::with_prefix("POSEMATCH")
+                .prefix_separator("__")
+                .try_parsing(true)
+                .source(Some(environment)),
+        );
+        let set = |b: config::ConfigBuilder<_>, key: &str, value: Option<String>| match value {
+            Some(v) => b.set_override(key, v),
+            None => Ok(b),
+        };
+        let path_string = |p: &Option<PathBuf>| p.as_ref().map(|p| p.display().to_string());
+        builder = set(builder, "listen", overrides.listen.clone()).map_err(wrap)?;
+        builder = set(builder, "metrics_listen", overrides.metrics_listen.clone()).map_err(wrap)?;
+        builder = set(builder, "weights", path_string(&overrides.weights)).map_err(wrap)?;
+        builder = set(
+            builder,
+            "template_dir",
+            path_string(&overrides.template_dir),
+        )
+        .map_err(wrap)?;
+        let settings: Settings = builder
+            .build()
+            .map_err(wrap)?
+            .try_deserialize()
+            .map_err(wrap)?;
+        settings.validate()?;
+        Ok(settings)
+    }
+
+    fn validate(&self) -> Result<(), SettingsError> {
+        let bad = |what: String| Err(SettingsError(what));
+        if self.listen.parse::<std::net::SocketAddr>().is_err() {
+            return bad(format!(
+                "listen = {:?} is not an address; use HOST:PORT, e.g. 0.0.0.0:50051",
+                self.listen
+            ));
+        }
+        if !self.metrics_listen.is_empty()
+            && self.metrics_listen.parse::<std::net::SocketAddr>().is_err()
+        {
+            return bad(format!(
+                "metrics_listen = {:?} is not an address; use HOST:PORT (port 0 = any free port) or \"\" to disable",
+                self.metrics_listen
+            ));
+        }
+        if !(1..=64).contains(&self.max_batch_size) {
+            return bad(format!(
+                "max_batch_size = {} is out of range 1..=64",
+                self.max_batch_size
+            ));
+        }
+        if !(1..=100_000).contains(&self.queue_size) {
+            return bad(format!(
+                "queue_size = {} is out of range 1..=100000",
+                self.queue_size
+            ));
+        }
+        if self.cache_size == 0 {
+            return bad("cache_size must be at least 1".into());
+        }
+        if !(1024..=400_000_000).contains(&self.max_image_pixels) {
+            return bad(format!(
+                "max_image_pixels = {} is out of range 1024..=400000000",
+                self.max_image_pixels
+            ));
+        }
+        if !(1 << 16..=1 << 30).contains(&self.max_message_bytes) {
+            return bad(format!(
+                "max_message_bytes = {} is out of range 65536..=1073741824",
+                self.max_message_bytes
+            ));
+        }
+        if !matches!(self.convention.as_str(), "imagenet" | "gray" | "grey") {
+            return bad(format!(
+                "convention = {:?}: use \"imagenet\" or \"gray\"",
+                self.convention
+            ));
+        }
+        Ok(())
+    }
+}
+
+fn wrap(e: config::ConfigError) -> SettingsError {
+    SettingsError(e.to_string())
+}
+
+#[cfg(test)]
+mod tests {
+    use super::*;
+
+    fn env(pairs: &[(&str, &str)]) -> Vec<(String, String)> {
+        pairs
+            .iter()
+            .map(|(k, v)| (k.to_string(), v.to_string()))
+            .collect()
+    }
+
+    #[test]
+    fn defaults_file_environment_and_flags_layer_in_order() {
+        let defaults = Settings::load(None, env(&[]), &Overrides::default()).unwrap();
+        assert_eq!(defaults.listen, "0.0.0.0:50051");
+        assert_eq!(defaults.template_dir, PathBuf::from("./data/templates"));
+        assert_eq!(defaults.log_format, LogFormat::Text);
+
+        let dir = tempfile::tempdir().unwrap();
+        let file = dir.path().join("posematch.toml");
+        std::fs::write(
+            &file,
+            "max_batch_size = 4\nqueue_size = 8\nlisten = \"127.0.0.1:1\"\nlog_format = \"json\"\n",
+        )
+        .unwrap();
+        let environment = env(&[
+            ("POSEMATCH__QUEUE_SIZE", "16"),
+            ("POSEMATCH__LISTEN", "127.0.0.1:2"),
+            ("UNRELATED", "x"),
+        ]);
+        let overrides = Overrides {
+            listen: Some("127.0.0.1:3".into()),
+            ..Overrides::default()
+        };
+        let s = Settings::load(Some(&file), environment, &overrides).unwrap();
+        assert_eq!(s.max_batch_size, 4); // file
+        assert_eq!(s.log_format, LogFormat::Json); // file
+        assert_eq!(s.queue_size, 16); // environment beats file
+        assert_eq!(s.listen, "127.0.0.1:3"); // flag beats environment
+    }
+
+    #[test]
+    fn bad_values_name_the_key() {
+        let err = |pairs: &[(&str, &str)]| {
+            Settings::load(None, env(pairs), &Overrides::default())
+                .unwrap_err()
+                .to_string()
+        };
+        assert!(err(&[("POSEMATCH__MAX_BATCH_SIZE", "0")]).contains("max_batch_size"));
+        assert!(err(&[("POSEMATCH__LISTEN", "nowhere")]).contains("listen"));
+        assert!(err(&[("POSEMATCH__QUEUE_SIZE", "many")]).contains("queue_size"));
+        assert!(err(&[("POSEMATCH__LOG_FORMAT", "xml")]).contains("log_format"));
+        let missing = Settings::load(
+            Some(Path::new("/no/such/posematch.toml")),
+            env(&[]),
+            &Overrides::default(),
+        )
+        .unwrap_err();
+        assert!(missing.to_string().contains("no such file"));
+    }
+}

