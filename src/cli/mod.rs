@@ -2,6 +2,7 @@
 //! Thin on purpose; every rule about images and poses lives below this layer.
 
 mod eval_cmd;
+mod health_cmd;
 mod match_cmd;
 mod overlay;
 mod serve_cmd;
@@ -35,6 +36,8 @@ pub enum Command {
     Eval(eval_cmd::EvalArgs),
     /// Run the gRPC service (template registry, batching, health, reflection, metrics).
     Serve(serve_cmd::ServeArgs),
+    /// Ask a running server whether it is SERVING (exit 0) — for container health checks.
+    Health(health_cmd::HealthArgs),
     /// Manage network weights.
     #[command(subcommand)]
     Weights(WeightsCommand),
@@ -102,6 +105,8 @@ pub enum CliError {
     },
     #[error("{0}")]
     Usage(String),
+    #[error("unhealthy: {0}")]
+    Unhealthy(String),
 }
 
 impl CliError {
@@ -151,6 +156,7 @@ pub fn run(cli: Cli) -> Result<(), CliError> {
         Command::Match(args) => match_cmd::run(args),
         Command::Eval(args) => eval_cmd::run(args),
         Command::Serve(args) => serve_cmd::run(args),
+        Command::Health(args) => health_cmd::run(args),
         Command::Weights(WeightsCommand::Import { from, out }) => {
             let device = select_device()?;
             let model = load_weights(&from, &device)?;

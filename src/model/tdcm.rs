@@ -151,13 +151,30 @@ impl SearchMatcher {
     /// # Shapes
     /// - `images`: `[batch, 3, H, W]`, normalised, `H, W >= 4`
     /// - `kernels`: `[batch, 96, k, k]`, `k` odd, from [`TemplateEncoder::forward`]
+    ///
+    /// On the host CPU the samples of a batch run one after another. Every layer is already
+    /// compute-bound at batch 1 (its gemms have tens of thousands of rows), so a batch buys no
+    /// weight reuse; what it costs is cache: at batch 4 the backbone's activations after fc1
+    /// (~19 MB at 224x224) spill out of L2/L3 and the memory-bound stages (GELU+GRN,
+    /// LayerNorm, residuals) slow by 20-40 % (measured with `examples/profile.rs`), which made a
+    /// batch of 4 cost 12 % more per pair than four single passes.
     pub fn forward(&self, images: Tensor<4>, kernels: Tensor<4>) -> MatchMaps {
+        let batch = images.dims()[0];
+        if super::device::runs_on_host_cpu(&images.device()) {
+            let per_sample = (0..batch)
+                .map(|i| {
+                    let features = self.backbone.forward(images.clone().narrow(0, i, 1));
+                    let correlation =
+                        depthwise_correlation(features, kernels.clone().narrow(0, i, 1));
+                    super::cpu_decoder::decode(self, correlation, false).0
+                })
+                .collect();
+            return MatchMaps {
+                stacked: Tensor::cat(per_sample, 0),
+            };
+        }
         let features = self.backbone.forward(images);
         let correlation = depthwise_correlation(features, kernels);
-        if super::device::runs_on_host_cpu(&correlation.device()) {
-            let stacked = super::cpu_decoder::decode(self, correlation, false).0;
-            return MatchMaps { stacked };
-        }
         self.decode(correlation).0
     }
 

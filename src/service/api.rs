@@ -123,10 +123,16 @@ async fn run_match(
         let answer = engine
             .match_image(&request.template_id, image, options, roi, deadline)
             .await?;
-        let span = tracing::Span::current();
-        span.record("batch_size", answer.batch_size);
-        span.record("poses", answer.poses.len());
         let t = answer.timings;
+        tracing::info!(
+            batch_size = answer.batch_size,
+            poses = answer.poses.len(),
+            queue_ms = answer.queue_ms,
+            network_ms = t.prepare_ms + t.network_ms,
+            postprocess_ms = t.decode_ms + t.refine_ms,
+            total_ms = received.elapsed().as_secs_f64() * 1e3,
+            "matched"
+        );
         Ok(proto::MatchResponse {
             request_id: request.request_id.clone(),
             template_id: request.template_id.clone(),
@@ -254,8 +260,6 @@ impl PoseMatcher for Api {
             "match",
             request_id = %request.request_id,
             template_id = %request.template_id,
-            batch_size = tracing::field::Empty,
-            poses = tracing::field::Empty,
         );
         let result = async {
             let engine = self.engine()?;
@@ -264,13 +268,7 @@ impl PoseMatcher for Api {
         .instrument(span.clone())
         .await
         .map(Response::new);
-        span.in_scope(|| {
-            tracing::debug!(
-                ms = received.elapsed().as_secs_f64() * 1e3,
-                "match answered"
-            )
-        });
-        self.record("Match", received, &result);
+        span.in_scope(|| self.record("Match", received, &result));
         result
     }
 

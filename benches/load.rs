@@ -1,0 +1,234 @@
+//! Load benchmark of the gRPC service: N concurrent clients on loopback, each sending 224x224
+//! PNG frames with one registered 36x36 template back to back, against servers with different
+//! `max_batch_size`. Reports pairs/s, p50/p99 latency and the mean batch the model thread formed.
+//!
+//! `cargo bench --bench load` — bounded in time (POSEMATCH_LOAD_SECONDS per configuration,
+//! default 10) and in requests (POSEMATCH_LOAD_MAX_REQUESTS per configuration, default 2000).
+//! POSEMATCH_LOAD_BATCHES (default "1,2,4") and POSEMATCH_LOAD_CLIENTS (default "1,8") choose the
+//! grid. Uses the official checkpoint when `../shared/reference` is present (realistic peak
+//! counts for refinement), an untrained network otherwise (refinement then sees random peaks;
+//! the network's cost does not depend on the weights).
+
+#[global_allocator]
+static ALLOCATOR: mimalloc::MiMalloc = mimalloc::MiMalloc;
+
+use std::path::PathBuf;
+use std::time::{Duration, Instant};
+
+use posematch::imaging::InputConvention;
+use posematch::matcher::Matcher;
+use posematch::model::{TdcmConfig, load_weights, select_device};
+use posematch::service::proto::pose_matcher_client::PoseMatcherClient;
+use posematch::service::proto::{self, image::Data};
+use posematch::service::{ModelLoader, Overrides, RunningServer, Settings};
+
+fn env_list(name: &str, default: &str) -> Vec<usize> {
+    std::env::var(name)
+        .unwrap_or_else(|_| default.into())
+        .split(',')
+        .map(|s| s.trim().parse().expect("comma-separated numbers"))
+        .collect()
+}
+
+fn env_number(name: &str, default: u64) -> u64 {
+    std::env::var(name)
+        .ok()
+        .and_then(|s| s.parse().ok())
+        .unwrap_or(default)
+}
+
+fn loader() -> (ModelLoader, &'static str) {
+    let official =
+        PathBuf::from(env!("CARGO_MANIFEST_DIR")).join("../shared/reference/tdcm-official.pth");
+    if official.is_file() {
+        let loader: ModelLoader = Box::new(move || {
+            let device = select_device().map_err(|e| e.to_string())?;
+            let model = load_weights(&official, &device).map_err(|e| e.to_string())?;
+            Ok(Matcher::new(model, device, InputConvention::Gray))
+        });
+        (loader, "official checkpoint")
+    } else {
+        let loader: ModelLoader = Box::new(|| {
+            let device = select_device().map_err(|e| e.to_string())?;
+            Ok(Matcher::new(
+                TdcmConfig::new().init(&device),
+                device,
+                InputConvention::ImagenetRgb,
+            ))
+        });
+        (loader, "untrained network")
+    }
+}
+
+/// A 224x224 textured frame and a 36x36 crop of it (the template, present once, unrotated).
+fn frame_and_template() -> (Vec<u8>, Vec<u8>) {
+    let frame = image::RgbImage::from_fn(224, 224, |x, y| {
+        let (fx, fy) = (x as f32, y as f32);
+        let a = ((fx * 0.11).sin() * (fy * 0.07).cos() * 0.5 + 0.5) * 255.0;
+        let b = ((fx * 0.031 + fy * 0.053).sin() * 0.5 + 0.5) * 255.0;
+        let c = (((x / 17 + y / 13) % 3) * 100) as f32;
+        image::Rgb([a as u8, b as u8, c as u8])
+    });
+    let template = image::imageops::crop_imm(&frame, 94, 80, 36, 36).to_image();
+    let png = |image: &image::RgbImage| {
+        let mut bytes = Vec::new();
+        image
+            .write_to(
+                &mut std::io::Cursor::new(&mut bytes),
+                image::ImageFormat::Png,
+            )
+            .unwrap();
+        bytes
+    };
+    (png(&frame), png(&template))
+}
+
+struct Run {
+    pairs_per_s: f64,
+    p50_ms: f64,
+    p99_ms: f64,
+    mean_batch: f64,
+    requests: usize,
+}
+
+async fn run(batch: usize, clients: usize, seconds: u64, max_requests: u64) -> Run {
+    let dir = tempfile::tempdir().unwrap();
+    let environment = vec![
+        ("POSEMATCH__LISTEN".to_string(), "127.0.0.1:0".to_string()),
+        (
+            "POSEMATCH__METRICS_LISTEN".to_string(),
+            "127.0.0.1:0".to_string(),
+        ),
+        ("POSEMATCH__MAX_BATCH_SIZE".to_string(), batch.to_string()),
+        ("POSEMATCH__QUEUE_SIZE".to_string(), "256".to_string()),
+    ];
+    let overrides = Overrides {
+        template_dir: Some(dir.path().to_owned()),
+        ..Overrides::default()
+    };
+    let settings = Settings::load(None, environment, &overrides).unwrap();
+    let (loader, _) = loader();
+    let mut server = RunningServer::start(&settings, loader).await.unwrap();
+    server.ready().await.unwrap();
+    let mut client = PoseMatcherClient::connect(format!("http://{}", server.grpc_addr))
+        .await
+        .unwrap();
+    let (frame, template) = frame_and_template();
+    client
+        .register_template(proto::RegisterTemplateRequest {
+            template_id: "bench".into(),
+            image: Some(proto::Image {
+                data: Some(Data::Encoded(template)),
+            }),
+            ..Default::default()
+        })
+        .await
+        .unwrap();
+    let request = proto::MatchRequest {
+        template_id: "bench".into(),
+        image: Some(proto::Image {
+            data: Some(Data::Encoded(frame)),
+        }),
+        ..Default::default()
+    };
+    // Warm-up: first passes allocate the activation buffers.
+    for _ in 0..3 {
+        client.r#match(request.clone()).await.unwrap();
+    }
+    let start = Instant::now();
+    let until = start + Duration::from_secs(seconds);
+    let budget = std::sync::Arc::new(std::sync::atomic::AtomicU64::new(max_requests));
+    let workers: Vec<_> = (0..clients)
+        .map(|_| {
+            let mut client = client.clone();
+            let request = request.clone();
+            let budget = budget.clone();
+            tokio::spawn(async move {
+                let mut latencies = Vec::new();
+                while Instant::now() < until
+                    && budget
+                        .fetch_update(
+                            std::sync::atomic::Ordering::SeqCst,
+                            std::sync::atomic::Ordering::SeqCst,
+                            |b| b.checked_sub(1),
+                        )
+                        .is_ok()
+                {
+                    let t = Instant::now();
+                    client.r#match(request.clone()).await.unwrap();
+                    latencies.push(t.elapsed().as_secs_f64() * 1e3);
+                }
+                latencies
+            })
+        })
+        .collect();
+    let batches_before = batch_stats(&server);
+    let mut latencies = Vec::new();
+    for worker in workers {
+        latencies.extend(worker.await.unwrap());
+    }
+    let elapsed = start.elapsed().as_secs_f64();
+    latencies.sort_by(f64::total_cmp);
+    let pct = |p: f64| latencies[((latencies.len() - 1) as f64 * p).round() as usize];
+    let batches_after = batch_stats(&server);
+    let mean_batch =
+        (batches_after.0 - batches_before.0) / (batches_after.1 - batches_before.1).max(1.0);
+    server.shutdown(Duration::from_secs(30)).await;
+    Run {
+        pairs_per_s: latencies.len() as f64 / elapsed,
+        p50_ms: pct(0.5),
+        p99_ms: pct(0.99),
+        mean_batch,
+        requests: latencies.len(),
+    }
+}
+
+/// (sum, count) of the model thread's batch sizes so far, from `/metrics`.
+fn batch_stats(server: &RunningServer) -> (f64, f64) {
+    use std::io::{Read, Write};
+    let addr = server.metrics_addr.expect("metrics enabled");
+    let mut stream = std::net::TcpStream::connect(addr).unwrap();
+    write!(
+        stream,
+        "GET /metrics HTTP/1.1\r\nHost: x\r\nConnection: close\r\n\r\n"
+    )
+    .unwrap();
+    let mut text = String::new();
+    stream.read_to_string(&mut text).unwrap();
+    let value = |name: &str| {
+        text.lines()
+            .find(|l| l.starts_with(name))
+            .and_then(|l| l.rsplit(' ').next()?.parse::<f64>().ok())
+            .unwrap_or(0.0)
+    };
+    (
+        value("posematch_batch_size_sum"),
+        value("posematch_batch_size_count"),
+    )
+}
+
+fn main() {
+    // `cargo bench` passes `--bench`; nothing else to parse.
+    let batches = env_list("POSEMATCH_LOAD_BATCHES", "1,2,4");
+    let clients = env_list("POSEMATCH_LOAD_CLIENTS", "1,8");
+    let seconds = env_number("POSEMATCH_LOAD_SECONDS", 10);
+    let max_requests = env_number("POSEMATCH_LOAD_MAX_REQUESTS", 2000);
+    let (_, source) = loader();
+    println!(
+        "load: 224x224 PNG frames, 36x36 template, refinement on, {source}, {seconds} s or {max_requests} requests per row"
+    );
+    println!("max_batch_size  clients  requests  pairs/s   p50 ms   p99 ms  mean batch");
+    let runtime = tokio::runtime::Builder::new_multi_thread()
+        .enable_all()
+        .build()
+        .unwrap();
+    for &batch in &batches {
+        for &n in &clients {
+            let r = runtime.block_on(run(batch, n, seconds, max_requests));
+            println!(
+                "{batch:>14}  {n:>7}  {:>8}  {:>7.2}  {:>7.1}  {:>7.1}  {:>10.2}",
+                r.requests, r.pairs_per_s, r.p50_ms, r.p99_ms, r.mean_batch
+            );
+        }
+    }
+}

@@ -1,0 +1,227 @@
+//! Memory of the template registry with many templates: registers N distinct templates through
+//! the real gRPC server (default 10 000), matches a spread of them so the kernel cache misses,
+//! evicts and reloads from disk, restarts the server on the same directory and matches again.
+//! Prints the process's resident memory (VmRSS, and the peak VmHWM) at each stage, the cache
+//! counters from `/metrics`, and how long registration and the restart took.
+//!
+//! `cargo bench --bench templates` — POSEMATCH_TEMPLATES (default 10000) and
+//! POSEMATCH_TEMPLATES_CACHE (the `cache_size` setting, default 1024) choose the run. The network
+//! is untrained: memory and I/O do not depend on the weights.
+
+#[global_allocator]
+static ALLOCATOR: mimalloc::MiMalloc = mimalloc::MiMalloc;
+
+use std::time::{Duration, Instant};
+
+use posematch::imaging::InputConvention;
+use posematch::matcher::Matcher;
+use posematch::model::{TdcmConfig, select_device};
+use posematch::service::proto::pose_matcher_client::PoseMatcherClient;
+use posematch::service::proto::{self, image::Data};
+use posematch::service::{ModelLoader, Overrides, RunningServer, Settings};
+use tonic::transport::Channel;
+
+fn env_number(name: &str, default: u64) -> u64 {
+    std::env::var(name)
+        .ok()
+        .and_then(|s| s.parse().ok())
+        .unwrap_or(default)
+}
+
+/// (VmRSS, VmHWM) of this process in MiB.
+fn memory_mib() -> (f64, f64) {
+    let status = std::fs::read_to_string("/proc/self/status").unwrap_or_default();
+    let field = |name: &str| {
+        status
+            .lines()
+            .find(|l| l.starts_with(name))
+            .and_then(|l| l.split_whitespace().nth(1)?.parse::<f64>().ok())
+            .map_or(f64::NAN, |kib| kib / 1024.0)
+    };
+    (field("VmRSS:"), field("VmHWM:"))
+}
+
+fn untrained() -> ModelLoader {
+    Box::new(|| {
+        let device = select_device().map_err(|e| e.to_string())?;
+        Ok(Matcher::new(
+            TdcmConfig::new().init(&device),
+            device,
+            InputConvention::ImagenetRgb,
+        ))
+    })
+}
+
+fn png(image: &image::RgbImage) -> Vec<u8> {
+    let mut bytes = Vec::new();
+    image
+        .write_to(
+            &mut std::io::Cursor::new(&mut bytes),
+            image::ImageFormat::Png,
+        )
+        .unwrap();
+    bytes
+}
+
+/// A distinct 36x36 template for every index (its content hash differs).
+fn template(index: u64) -> Vec<u8> {
+    let seed = index as u32;
+    png(&image::RgbImage::from_fn(36, 36, |x, y| {
+        let v = (x.wrapping_mul(2654435761) ^ y.wrapping_mul(40503) ^ seed.wrapping_mul(97))
+            .wrapping_mul(2246822519);
+        image::Rgb([
+            (v >> 24) as u8,
+            (v >> 16) as u8,
+            (v >> 8) as u8 ^ seed as u8,
+        ])
+    }))
+}
+
+fn frame() -> Vec<u8> {
+    png(&image::RgbImage::from_fn(96, 96, |x, y| {
+        image::Rgb([
+            (x * 5 % 256) as u8,
+            (y * 3 % 256) as u8,
+            ((x + y) % 256) as u8,
+        ])
+    }))
+}
+
+async fn start_server(
+    dir: &std::path::Path,
+    cache: u64,
+) -> (RunningServer, PoseMatcherClient<Channel>) {
+    let environment = vec![
+        ("POSEMATCH__LISTEN".to_string(), "127.0.0.1:0".to_string()),
+        (
+            "POSEMATCH__METRICS_LISTEN".to_string(),
+            "127.0.0.1:0".to_string(),
+        ),
+        ("POSEMATCH__CACHE_SIZE".to_string(), cache.to_string()),
+    ];
+    let overrides = Overrides {
+        template_dir: Some(dir.to_owned()),
+        ..Overrides::default()
+    };
+    let settings = Settings::load(None, environment, &overrides).unwrap();
+    let mut server = RunningServer::start(&settings, untrained()).await.unwrap();
+    server.ready().await.unwrap();
+    let client = PoseMatcherClient::connect(format!("http://{}", server.grpc_addr))
+        .await
+        .unwrap();
+    (server, client)
+}
+
+fn metric(server: &RunningServer, name: &str) -> f64 {
+    use std::io::{Read, Write};
+    let addr = server.metrics_addr.expect("metrics enabled");
+    let mut stream = std::net::TcpStream::connect(addr).unwrap();
+    write!(
+        stream,
+        "GET /metrics HTTP/1.1\r\nHost: x\r\nConnection: close\r\n\r\n"
+    )
+    .unwrap();
+    let mut text = String::new();
+    stream.read_to_string(&mut text).unwrap();
+    text.lines()
+        .find(|l| l.starts_with(name))
+        .and_then(|l| l.rsplit(' ').next()?.parse::<f64>().ok())
+        .unwrap_or(0.0)
+}
+
+fn report(stage: &str, server: &RunningServer) {
+    let (rss, peak) = memory_mib();
+    println!(
+        "{stage:<44} RSS {rss:>7.1} MiB  peak {peak:>7.1} MiB  templates {:>6}  cache hits {:>5} misses {:>5} evictions {:>5}",
+        metric(server, "posematch_templates"),
+        metric(server, "posematch_template_cache_hits_total"),
+        metric(server, "posematch_template_cache_misses_total"),
+        metric(server, "posematch_template_cache_evictions_total"),
+    );
+}
+
+/// Matches `count` templates spread evenly over all `total` IDs.
+async fn match_spread(client: &mut PoseMatcherClient<Channel>, total: u64, count: u64) -> f64 {
+    let frame = frame();
+    let start = Instant::now();
+    for i in 0..count {
+        let id = i * total / count;
+        client
+            .r#match(proto::MatchRequest {
+                template_id: format!("part-{id:05}"),
+                image: Some(proto::Image {
+                    data: Some(Data::Encoded(frame.clone())),
+                }),
+                options: Some(proto::MatchOptions {
+                    no_refine: true,
+                    ..Default::default()
+                }),
+                ..Default::default()
+            })
+            .await
+            .unwrap();
+    }
+    start.elapsed().as_secs_f64() * 1e3 / count as f64
+}
+
+async fn run(total: u64, cache: u64) {
+    let dir = tempfile::tempdir().unwrap();
+    let (server, mut client) = start_server(dir.path(), cache).await;
+    report("started, empty registry", &server);
+    let start = Instant::now();
+    for i in 0..total {
+        client
+            .register_template(proto::RegisterTemplateRequest {
+                template_id: format!("part-{i:05}"),
+                image: Some(proto::Image {
+                    data: Some(Data::Encoded(template(i))),
+                }),
+                labels: [("line".to_string(), (i % 7).to_string())].into(),
+                ..Default::default()
+            })
+            .await
+            .unwrap();
+        if (i + 1) % (total / 4).max(1) == 0 {
+            report(&format!("registered {}", i + 1), &server);
+        }
+    }
+    let per_template = start.elapsed().as_secs_f64() * 1e3 / total as f64;
+    println!("registration: {per_template:.2} ms per template (encode + durable write)");
+    let ms = match_spread(&mut client, total, 200).await;
+    report("200 matches spread over all IDs", &server);
+    println!("matching with cache misses: {ms:.1} ms per request (96x96 frame, no refinement)");
+    server.shutdown(Duration::from_secs(5)).await;
+
+    let restart = Instant::now();
+    let (server, mut client) = start_server(dir.path(), cache).await;
+    let restart_ms = restart.elapsed().as_secs_f64() * 1e3;
+    report("restarted on the same directory", &server);
+    println!("restart until SERVING: {restart_ms:.0} ms (metadata only; kernels load lazily)");
+    let ms = match_spread(&mut client, total, 200).await;
+    report("200 matches after the restart", &server);
+    println!("matching after the restart: {ms:.1} ms per request");
+    let listed = client
+        .list_templates(proto::ListTemplatesRequest {
+            page_size: 1000,
+            ..Default::default()
+        })
+        .await
+        .unwrap()
+        .into_inner();
+    println!(
+        "first page after the restart: {} templates",
+        listed.templates.len()
+    );
+    server.shutdown(Duration::from_secs(5)).await;
+}
+
+fn main() {
+    let total = env_number("POSEMATCH_TEMPLATES", 10_000);
+    let cache = env_number("POSEMATCH_TEMPLATES_CACHE", 1024);
+    println!("templates: {total} distinct 36x36 templates, cache_size {cache}, untrained network");
+    tokio::runtime::Builder::new_multi_thread()
+        .enable_all()
+        .build()
+        .unwrap()
+        .block_on(run(total, cache));
+}
