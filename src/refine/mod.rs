@@ -8,9 +8,11 @@
 //!
 //! 1. Angle x scales on a sparse grid of template points: ±30° in 3° steps x five factors
 //!    0.7–1.4 per axis; then scales ±10 % and the angle ±4° in finer steps.
-//! 3. Polish: all five parameters by coordinate-wise parabolic fits on the full grid, steps
-//!    halving from 2 px / 2° / 6 % over nine rounds, so the centre can still move a few pixels
-//!    and the result falls far below the search steps.
+//! 2. Align: all five parameters jointly by Gauss–Newton (Lucas–Kanade with
+//!    Levenberg–Marquardt damping, [`align`]) on the image blurred by 2, then 1 pixel, then
+//!    sharp, from the grid's best pose and from the initial one; the better-scoring result wins.
+//!    The blur widens the basin (a start a few pixels and degrees off still converges); the
+//!    sharp level takes the error far below any search step.
 //!
 //! The refined pose replaces the initial one only if it scores higher, reaches ZNCC >= 0.6 and
 //! its centre stays within a third of the object's size, so that refinement does not trade an
@@ -18,9 +20,17 @@
 
 use crate::geometry::{Pose, wrap_angle_deg};
 
+mod align;
+
+use crate::imaging::RgbImage32;
+
 /// ZNCC below which the refined alignment is not trusted (the content is too ambiguous).
 const MIN_MATCH_SCORE: f32 = 0.6;
-use crate::imaging::RgbImage32;
+
+/// Blur of the coarse-to-fine alignment levels, in image pixels for an object 36 pixels across
+/// (proportionally more for larger objects, whose start is proportionally further off): a wide
+/// basin first, then the sharp image for the last fraction of a pixel.
+const ALIGN_SIGMAS: [f32; 3] = [2.0, 1.0, 0.0];
 
 /// A single-channel float image.
 #[derive(Debug, Clone)]
@@ -165,43 +175,54 @@ pub fn refine_pose(template: &GrayImage32, image: &GrayImage32, initial: &Pose) 
         };
         try_pose(candidate, &mut best);
     }
-    // 3. Polish all five parameters.
-    let mut steps = [2.0f32, 2.0, 2.0, 0.06, 0.06]; // x, y (px), angle (°), relative scales
-    let mut best_score = dense.score(image, &best);
-    for _ in 0..9 {
-        for (parameter, step) in steps.iter().enumerate() {
-            let at = |delta: f32| {
-                let mut p = best;
-                match parameter {
-                    0 => p.x += delta,
-                    1 => p.y += delta,
-                    2 => p.angle_deg += delta,
-                    3 => p.scale_x *= 1.0 + delta,
-                    _ => p.scale_y *= 1.0 + delta,
-                }
-                p
-            };
-            let (minus, plus) = (
-                dense.score(image, &at(-step)),
-                dense.score(image, &at(*step)),
-            );
-            // Vertex of the parabola through (−step, minus), (0, best), (+step, plus).
-            let curvature = minus - 2.0 * best_score + plus;
-            let offset = if curvature < 0.0 {
-                (0.5 * step * (minus - plus) / curvature).clamp(-step, *step)
-            } else if plus > minus {
-                *step
+    // 3. All five parameters jointly, coarse to fine (Gauss-Newton on blurred images, see
+    //    `align`), from the grid's best and from the network's own pose; the better one wins.
+    let starts = [best, *initial];
+    let longest_side = template.width.max(template.height) as f32;
+    let largest_scale = starts
+        .iter()
+        .map(|p| p.scale_x.max(p.scale_y))
+        .fold(1.0f32, f32::max);
+    let radius = 0.75 * longest_side * largest_scale * 1.5 + 8.0;
+    let mean_scale = (initial.scale_x * initial.scale_y).abs().sqrt().max(0.1);
+    let object_side = (template.width * template.height) as f32;
+    let blur_factor = (object_side.sqrt() * mean_scale / 36.0).max(1.0);
+    let mut sigmas: Vec<f32> = ALIGN_SIGMAS.iter().map(|s| s * blur_factor).collect();
+    if blur_factor > 1.5 {
+        sigmas.insert(2, 1.0); // no big jump from a wide blur to the sharp image
+    }
+    let levels: Vec<(align::AlignPoints, align::GradientWindow)> = sigmas
+        .iter()
+        .map(|&sigma| {
+            // Blurred levels need fewer points: about two per blur radius.
+            let max_side = if sigma > 0.0 {
+                ((longest_side * mean_scale / sigma) as usize).clamp(12, 40)
             } else {
-                -step
+                40
             };
-            let candidate = at(offset);
-            let s = dense.score(image, &candidate);
-            if s > best_score {
-                best_score = s;
-                best = candidate;
-            }
+            (
+                align::AlignPoints::new(template, sigma / mean_scale, max_side),
+                align::GradientWindow::new(
+                    image,
+                    initial.x,
+                    initial.y,
+                    radius + 3.0 * sigma,
+                    sigma,
+                ),
+            )
+        })
+        .collect();
+    let mut best_score = f32::NEG_INFINITY;
+    for start in starts {
+        let mut pose = start;
+        for (points, window) in &levels {
+            pose = align::align(points, window, &pose, 20);
         }
-        steps.iter_mut().for_each(|s| *s *= 0.5);
+        let score = dense.score(image, &pose);
+        if score > best_score {
+            best_score = score;
+            best = pose;
+        }
     }
     // Keep the network's pose unless the refined one is better, clearly a match (as the paper
     // keeps its estimate when every candidate scores below a threshold), and no jump to a
