@@ -15,3 +15,4 @@ pub mod model;
 pub mod refine;
 pub mod service;
 pub mod synth;
+pub mod train;

@@ -5,7 +5,7 @@
 mod common;
 
 use burn::prelude::*;
-use common::reference_dir;
+use common::{reference_dir, structured_photo_dir};
 use posematch::evaluation::pair_error;
 use posematch::geometry::Pose;
 use posematch::imaging::InputConvention;
@@ -15,40 +15,6 @@ use posematch::refine::{GrayImage32, refine_pose};
 use posematch::synth::{DEFAULT_MIN_STRUCTURE, Level, PairSpec, PhotoSet, make_pair};
 use rand::rngs::StdRng;
 use rand::{Rng, SeedableRng};
-
-/// Two 640x480 "photos" with object-like structure: overlapping filled shapes of random grey
-/// levels and colours on a smooth background.
-fn photo_dir() -> tempfile::TempDir {
-    let dir = tempfile::tempdir().unwrap();
-    let mut rng = StdRng::seed_from_u64(11);
-    for k in 0..2 {
-        let (w, h) = (640u32, 480u32);
-        let mut photo = image::RgbImage::from_fn(w, h, |x, y| {
-            let v = (100.0
-                + 40.0 * ((x as f32) * 0.013 + k as f32).sin()
-                + 30.0 * ((y as f32) * 0.021).cos()) as u8;
-            image::Rgb([v, v / 2 + 40, 255 - v])
-        });
-        for _ in 0..220 {
-            let (cx, cy) = (rng.random_range(0..w) as i32, rng.random_range(0..h) as i32);
-            let (rx, ry) = (rng.random_range(3..28), rng.random_range(3..28));
-            let colour = image::Rgb([rng.random(), rng.random(), rng.random()]);
-            let ellipse = rng.random_bool(0.5);
-            for y in (cy - ry).max(0)..(cy + ry).min(h as i32) {
-                for x in (cx - rx).max(0)..(cx + rx).min(w as i32) {
-                    let (dx, dy) = ((x - cx) as f32 / rx as f32, (y - cy) as f32 / ry as f32);
-                    if !ellipse || dx * dx + dy * dy <= 1.0 {
-                        photo.put_pixel(x as u32, y as u32, colour);
-                    }
-                }
-            }
-        }
-        photo
-            .save(dir.path().join(format!("photo{k}.png")))
-            .unwrap();
-    }
-    dir
-}
 
 fn spec() -> PairSpec {
     PairSpec {
@@ -62,7 +28,7 @@ fn spec() -> PairSpec {
 
 #[test]
 fn refinement_recovers_the_true_pose_from_a_rough_start() {
-    let dir = photo_dir();
+    let dir = structured_photo_dir();
     let photos = PhotoSet::load(dir.path(), 224).unwrap();
     let mut rng = StdRng::seed_from_u64(5);
     let (mut centre, mut angle, mut scale) = (Vec::new(), Vec::new(), Vec::new());
@@ -102,7 +68,7 @@ fn refinement_sharpens_the_official_network_and_never_loses_an_object() {
     let device = Device::flex();
     let model = load_weights(&dir.join("tdcm-official.pth"), &device).unwrap();
     let matcher = Matcher::new(model, device, InputConvention::ImagenetRgb);
-    let photos_dir = photo_dir();
+    let photos_dir = structured_photo_dir();
     let photos = PhotoSet::load(photos_dir.path(), 224).unwrap();
     let options = MatchOptions {
         max_instances: 1,

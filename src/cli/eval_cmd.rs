@@ -10,11 +10,11 @@ use serde_json::json;
 
 use super::{CliError, ModelArgs, load_model};
 use crate::evaluation::{
-    DetectionCounts, PairError, Summary, match_detections, pair_error, summarise,
+    DetectionCounts, PairError, Summary, match_detections, match_pair, pair_error, summarise,
 };
 use crate::geometry::Pose;
-use crate::matcher::{MatchOptions, Matcher};
-use crate::refine::{GrayImage32, refine_pose};
+use crate::matcher::MatchOptions;
+use crate::refine::GrayImage32;
 use crate::synth::{Level, PairSpec, PhotoSet, SyntheticPair, make_multi_instance, make_pair};
 
 #[derive(Args, Debug)]
@@ -131,7 +131,10 @@ pub fn run(args: EvalArgs) -> Result<(), CliError> {
             saver.save(index, &pair)?;
         }
         let (coarse_poses, coarse_ms, refined_poses, refine_ms) = match &matcher {
-            Some(matcher) => run_pair(matcher, &pair, &options, !args.no_refine)?,
+            Some(matcher) => {
+                let run = match_pair(matcher, &pair, &options, !args.no_refine)?;
+                (run.coarse, run.coarse_ms, run.refined, run.refine_ms)
+            }
             None => run_ncc(
                 &pair,
                 &options,
@@ -223,34 +226,6 @@ fn run_ncc(
         poses,
         0.0,
     )
-}
-
-/// Matches one pair: coarse poses and time, refined poses and the refinement's time.
-fn run_pair(
-    matcher: &Matcher,
-    pair: &SyntheticPair,
-    options: &MatchOptions,
-    refine: bool,
-) -> Result<(Vec<Pose>, f64, Vec<Pose>, f64), CliError> {
-    let start = Instant::now();
-    let encoded = matcher.encode_template(&pair.template)?;
-    let coarse = matcher.match_one(&encoded, &pair.search, options)?.poses;
-    let coarse_ms = start.elapsed().as_secs_f64() * 1e3;
-    if !refine {
-        return Ok((coarse.clone(), coarse_ms, coarse, 0.0));
-    }
-    let start = Instant::now();
-    let image = GrayImage32::from_rgb(&pair.search);
-    let refined = coarse
-        .iter()
-        .map(|p| refine_pose(&encoded.gray, &image, p))
-        .collect();
-    Ok((
-        coarse,
-        coarse_ms,
-        refined,
-        start.elapsed().as_secs_f64() * 1e3,
-    ))
 }
 
 /// How many of the network's successes refinement lost, and how many failures it turned into

@@ -6,6 +6,7 @@ mod health_cmd;
 mod match_cmd;
 mod overlay;
 mod serve_cmd;
+mod train_cmd;
 
 use std::path::{Path, PathBuf};
 
@@ -34,6 +35,8 @@ pub enum Command {
     Match(MatchArgs),
     /// Measure accuracy on generated pairs with exact ground truth (the paper's metrics).
     Eval(eval_cmd::EvalArgs),
+    /// Train the network (or fine-tune it) on pairs cut from folders of unlabeled photos.
+    Train(train_cmd::TrainArgs),
     /// Run the gRPC service (template registry, batching, health, reflection, metrics).
     Serve(serve_cmd::ServeArgs),
     /// Ask a running server whether it is SERVING (exit 0) — for container health checks.
@@ -156,6 +159,7 @@ pub fn run(cli: Cli) -> Result<(), CliError> {
         Command::Match(args) => match_cmd::run(args),
         Command::Eval(args) => eval_cmd::run(args),
         Command::Serve(args) => serve_cmd::run(args),
+        Command::Train(args) => train_cmd::run(args),
         Command::Health(args) => health_cmd::run(args),
         Command::Weights(WeightsCommand::Import { from, out }) => {
             let device = select_device()?;

@@ -2,9 +2,14 @@
 //! (mean |Δsx|, |Δsy|), Rot.Err (°, wrapped), mIoU of rotated boxes, Succ (IoU ≥ 0.5), time per
 //! pair; and precision/recall at IoU ≥ 0.5 with greedy matching for multi-instance images.
 
+use std::time::Instant;
+
 use serde::Serialize;
 
 use crate::geometry::{Pose, angle_distance_deg, rotated_iou};
+use crate::matcher::{MatchError, MatchOptions, Matcher};
+use crate::refine::{GrayImage32, refine_pose};
+use crate::synth::SyntheticPair;
 
 /// IoU at which a prediction counts as the object (the paper's Succ).
 pub const SUCCESS_IOU: f32 = 0.5;
@@ -46,6 +51,67 @@ pub struct Summary {
     pub success: f32,
     /// Mean wall time per pair (ms).
     pub ms_per_pair: f64,
+}
+
+/// One pair through the network: its poses and time, then the refined poses and the
+/// refinement's time (the same poses and 0 ms when `refine` is off).
+pub struct PairRun {
+    pub coarse: Vec<Pose>,
+    pub coarse_ms: f64,
+    pub refined: Vec<Pose>,
+    pub refine_ms: f64,
+}
+
+/// Matches one generated pair with `options` (whose own `refine` should be off: refinement is
+/// timed separately here).
+pub fn match_pair(
+    matcher: &Matcher,
+    pair: &SyntheticPair,
+    options: &MatchOptions,
+    refine: bool,
+) -> Result<PairRun, MatchError> {
+    let start = Instant::now();
+    let encoded = matcher.encode_template(&pair.template)?;
+    let coarse = matcher.match_one(&encoded, &pair.search, options)?.poses;
+    let coarse_ms = start.elapsed().as_secs_f64() * 1e3;
+    if !refine {
+        return Ok(PairRun {
+            refined: coarse.clone(),
+            coarse,
+            coarse_ms,
+            refine_ms: 0.0,
+        });
+    }
+    let start = Instant::now();
+    let image = GrayImage32::from_rgb(&pair.search);
+    let refined = coarse
+        .iter()
+        .map(|p| refine_pose(&encoded.gray, &image, p))
+        .collect();
+    Ok(PairRun {
+        coarse,
+        coarse_ms,
+        refined,
+        refine_ms: start.elapsed().as_secs_f64() * 1e3,
+    })
+}
+
+/// The paper's table rows for single-instance pairs: the network alone and with refinement.
+pub fn evaluate_pairs(
+    matcher: &Matcher,
+    pairs: &[SyntheticPair],
+    options: &MatchOptions,
+) -> Result<(Summary, Summary), MatchError> {
+    let (mut coarse, mut refined) = (Vec::new(), Vec::new());
+    for pair in pairs {
+        let run = match_pair(matcher, pair, options, true)?;
+        let truth = &pair.truth[0];
+        let (tw, th) = (pair.template.width as f32, pair.template.height as f32);
+        let error = |poses: &[Pose]| poses.first().map(|p| pair_error(p, truth, tw, th));
+        coarse.push((error(&run.coarse), run.coarse_ms));
+        refined.push((error(&run.refined), run.coarse_ms + run.refine_ms));
+    }
+    Ok((summarise(&coarse), summarise(&refined)))
 }
 
 /// Aggregates per-pair results: `None` means nothing was found.

@@ -147,6 +147,12 @@ impl PhotoSet {
     pub fn is_empty(&self) -> bool {
         self.photos.is_empty()
     }
+
+    /// Adds another set's photos after these (several folders as one training set).
+    pub fn extend(&mut self, other: PhotoSet) {
+        self.photos.extend(other.photos);
+        self.paths.extend(other.paths);
+    }
 }
 
 fn collect_files(dir: &Path, out: &mut Vec<PathBuf>) -> Result<(), SynthError> {

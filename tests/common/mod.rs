@@ -5,6 +5,8 @@
 
 use std::path::{Path, PathBuf};
 
+use rand::rngs::StdRng;
+use rand::{Rng, SeedableRng};
 use safetensors::SafeTensors;
 
 /// `../shared/reference`, or None (with a printed reason) when it is absent.
@@ -65,4 +67,38 @@ pub fn posematch(args: &[&str]) -> (i32, String, String) {
         String::from_utf8_lossy(&output.stdout).into_owned(),
         String::from_utf8_lossy(&output.stderr).into_owned(),
     )
+}
+
+/// Two 640x480 "photos" with object-like structure: overlapping filled shapes of random grey
+/// levels and colours on a smooth background.
+pub fn structured_photo_dir() -> tempfile::TempDir {
+    let dir = tempfile::tempdir().unwrap();
+    let mut rng = StdRng::seed_from_u64(11);
+    for k in 0..2 {
+        let (w, h) = (640u32, 480u32);
+        let mut photo = image::RgbImage::from_fn(w, h, |x, y| {
+            let v = (100.0
+                + 40.0 * ((x as f32) * 0.013 + k as f32).sin()
+                + 30.0 * ((y as f32) * 0.021).cos()) as u8;
+            image::Rgb([v, v / 2 + 40, 255 - v])
+        });
+        for _ in 0..220 {
+            let (cx, cy) = (rng.random_range(0..w) as i32, rng.random_range(0..h) as i32);
+            let (rx, ry) = (rng.random_range(3..28), rng.random_range(3..28));
+            let colour = image::Rgb([rng.random(), rng.random(), rng.random()]);
+            let ellipse = rng.random_bool(0.5);
+            for y in (cy - ry).max(0)..(cy + ry).min(h as i32) {
+                for x in (cx - rx).max(0)..(cx + rx).min(w as i32) {
+                    let (dx, dy) = ((x - cx) as f32 / rx as f32, (y - cy) as f32 / ry as f32);
+                    if !ellipse || dx * dx + dy * dy <= 1.0 {
+                        photo.put_pixel(x as u32, y as u32, colour);
+                    }
+                }
+            }
+        }
+        photo
+            .save(dir.path().join(format!("photo{k}.png")))
+            .unwrap();
+    }
+    dir
 }

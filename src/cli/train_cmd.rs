@@ -1,0 +1,167 @@
+//! `posematch train`: self-supervised training or fine-tuning from folders of unlabeled photos,
+//! with a progress bar (loss, throughput), periodic checkpoints and validation tables.
+
+use std::path::PathBuf;
+use std::time::Duration;
+
+use clap::Args;
+use indicatif::{ProgressBar, ProgressStyle};
+
+use super::CliError;
+use crate::evaluation::Summary;
+use crate::model::select_device;
+use crate::synth::Level;
+use crate::train::{TrainError, TrainEvent, TrainOptions, train};
+
+#[derive(Args, Debug)]
+pub struct TrainArgs {
+    /// Folder of training photos (searched recursively); repeat for several folders.
+    #[arg(long, required = true)]
+    images: Vec<PathBuf>,
+    /// Held-out photos for the validation table (never trained on).
+    #[arg(long)]
+    validation_images: Option<PathBuf>,
+    /// Transformation level of the training pairs: S1, S1.5, S2 or S2.5.
+    #[arg(long, default_value = "S1.5", value_parser = |s: &str| s.parse::<Level>())]
+    level: Level,
+    /// Optimizer steps in the whole run.
+    #[arg(long)]
+    steps: u64,
+    /// Pairs per step.
+    #[arg(long, default_value_t = 8)]
+    batch: usize,
+    /// Side of the training search crops (the network is fully convolutional; the paper: 224).
+    #[arg(long, default_value_t = 128)]
+    search_size: u32,
+    /// Peak learning rate (Adam, linear warm-up, cosine decay to 5 %).
+    #[arg(long, default_value_t = 1e-3)]
+    lr: f64,
+    /// Seed of the pair sequence.
+    #[arg(long, default_value_t = 0)]
+    seed: u64,
+    /// Start from these weights (.bpk, .pth or .safetensors) instead of random initialisation.
+    #[arg(long)]
+    init: Option<PathBuf>,
+    /// Continue the run checkpointed at --out.
+    #[arg(long)]
+    resume: bool,
+    /// Weights file to write (burnpack); its optimizer state and progress go beside it.
+    #[arg(long)]
+    out: PathBuf,
+    /// Minutes between checkpoints.
+    #[arg(long, default_value_t = 5.0)]
+    checkpoint_minutes: f64,
+    /// Steps between validation tables (0: only at the end).
+    #[arg(long, default_value_t = 500)]
+    validate_every: u64,
+    /// Held-out pairs per validation table.
+    #[arg(long, default_value_t = 100)]
+    validation_pairs: u64,
+}
+
+pub fn run(args: TrainArgs) -> Result<(), CliError> {
+    if !(args.checkpoint_minutes > 0.0 && args.checkpoint_minutes <= 1440.0) {
+        return Err(CliError::Usage(format!(
+            "--checkpoint-minutes {} must be in (0, 1440]",
+            args.checkpoint_minutes
+        )));
+    }
+    let options = TrainOptions {
+        images: args.images,
+        validation_images: args.validation_images,
+        level: args.level,
+        steps: args.steps,
+        batch: args.batch,
+        search_side: args.search_size,
+        learning_rate: args.lr,
+        seed: args.seed,
+        init: args.init,
+        resume: args.resume,
+        out: args.out,
+        checkpoint_every: Duration::from_secs_f64(args.checkpoint_minutes * 60.0),
+        validate_every: args.validate_every,
+        validation_pairs: args.validation_pairs,
+    };
+    let device = select_device()?;
+    let bar = ProgressBar::new(options.steps);
+    bar.set_style(
+        ProgressStyle::with_template(
+            "{elapsed_precise} [{bar:30}] {pos}/{len} steps  {msg}  eta {eta}",
+        )
+        .expect("valid template")
+        .progress_chars("=> "),
+    );
+    let outcome = train(&options, &device, |event| match event {
+        TrainEvent::Started {
+            first_step, photos, ..
+        } => {
+            bar.set_position(first_step);
+            bar.println(format!(
+                "training on {photos} photos from step {first_step} (level {}, batch {}, {}x{} crops)",
+                options.level.name(),
+                options.batch,
+                options.search_side,
+                options.search_side
+            ));
+        }
+        TrainEvent::Step {
+            step,
+            loss,
+            centre,
+            parameters,
+            learning_rate,
+            pairs_per_s,
+        } => {
+            bar.set_position(step);
+            bar.set_message(format!(
+                "loss {loss:.3} (centre {centre:.3}, parameters {parameters:.3})  lr {learning_rate:.1e}  {pairs_per_s:.1} pairs/s"
+            ));
+        }
+        TrainEvent::Checkpoint { step, path } => {
+            bar.println(format!("step {step}: checkpoint {}", path.display()));
+        }
+        TrainEvent::Validation {
+            step,
+            network,
+            refined,
+        } => {
+            bar.println(format!(
+                "step {step}: validation\n{}",
+                table(&network, &refined)
+            ));
+        }
+    });
+    bar.finish();
+    let outcome = outcome.map_err(|e| match e {
+        TrainError::Options(m) => CliError::Usage(m),
+        other => CliError::Usage(other.to_string()),
+    })?;
+    eprintln!(
+        "{} steps in {:.1} min; loss {:.3} -> {:.3}; weights in {}",
+        outcome.steps_done,
+        outcome.wall.as_secs_f64() / 60.0,
+        outcome.first_loss.unwrap_or(f32::NAN),
+        outcome.last_loss.unwrap_or(f32::NAN),
+        options.out.display()
+    );
+    Ok(())
+}
+
+fn table(network: &Summary, refined: &Summary) -> String {
+    let row = |name: &str, s: &Summary| {
+        format!(
+            "| {name:<22} | {:>11.3} | {:>8.4} | {:>11.3} | {:>6.3} | {:>5.1}% | {:>8.1} |",
+            s.loc_err_px,
+            s.scale_err,
+            s.rot_err_deg,
+            s.miou,
+            100.0 * s.success,
+            s.ms_per_pair
+        )
+    };
+    format!(
+        "| method                 | Loc.Err(px) | ScaleErr |  Rot.Err(°) |   mIoU |   Succ |  ms/pair |\n{}\n{}",
+        row("network only", network),
+        row("network + refinement", refined)
+    )
+}
