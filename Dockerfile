@@ -1,7 +1,7 @@
 # Multi-stage build of PoseMatch (CPU, flex backend): the gRPC service by default, the CLI too.
 #   docker build -t posematch .
-#   docker run --rm -p 50051:50051 -p 9090:9090 -v posematch-templates:/data/templates \
-#     -v "$PWD/weights.bpk:/models/weights.bpk:ro" -e POSEMATCH__WEIGHTS=/models/weights.bpk posematch
+#   docker run --rm -p 50051:50051 -p 9090:9090 -v posematch-templates:/data/templates posematch
+#   (embedded default weights; other weights: -v "$PWD/w.bpk:/models/w.bpk:ro" -e POSEMATCH__WEIGHTS=/models/w.bpk)
 #   docker run --rm -v "$PWD/data:/work" posematch match --template /work/t.png --image /work/s.png ...
 FROM rust:1.95-slim-bookworm AS build
 WORKDIR /src
@@ -10,11 +10,13 @@ COPY Cargo.toml Cargo.lock build.rs ./
 COPY proto proto
 RUN mkdir -p src benches \
  && echo 'fn main() {}' > src/main.rs && echo '' > src/lib.rs \
- && echo 'fn main() {}' > benches/network.rs && echo 'fn main() {}' > benches/load.rs \
+ && for b in network load templates; do echo 'fn main() {}' > benches/$b.rs; done \
  && cargo build --release --locked --bin posematch \
  && rm -rf src benches
 COPY src src
 COPY benches benches
+# The default weights are compiled into the binary (include_bytes!).
+COPY models models
 RUN touch src/main.rs src/lib.rs && cargo build --release --locked --bin posematch
 
 FROM debian:bookworm-slim

@@ -118,7 +118,8 @@ fn absurd_options_are_refused_with_the_flag_named() {
     let dir = tempfile::tempdir().unwrap();
     let out = dir.path().join("w.bpk");
     let device = Device::flex();
-    let cases: Vec<(Box<dyn Fn(&mut TrainOptions)>, &str)> = vec![
+    type Tweak = Box<dyn Fn(&mut TrainOptions)>;
+    let cases: Vec<(Tweak, &str)> = vec![
         (Box::new(|o| o.steps = 0), "--steps"),
         (Box::new(|o| o.batch = 0), "--batch"),
         (Box::new(|o| o.search_side = 90), "--search-size"),
@@ -134,4 +135,71 @@ fn absurd_options_are_refused_with_the_flag_named() {
             "{error} should mention {expected}"
         );
     }
+}
+
+/// The shipped binary runs on its embedded default weights, and `posematch train` is a real
+/// command: a short fine-tuning run from them writes weights that `match` then loads.
+#[test]
+fn cli_matches_on_embedded_weights_and_fine_tunes_them() {
+    use common::posematch;
+    let photos = structured_photo_dir();
+    let dir = tempfile::tempdir().unwrap();
+    let photo = photos.path().join("photo0.png");
+    let template = dir.path().join("template.png");
+    image::open(&photo)
+        .unwrap()
+        .crop_imm(200, 150, 36, 36)
+        .save(&template)
+        .unwrap();
+    let (code, stdout, stderr) = posematch(&[
+        "match",
+        "--template",
+        template.to_str().unwrap(),
+        "--image",
+        photo.to_str().unwrap(),
+    ]);
+    assert_eq!(code, 0, "{stderr}");
+    let answer: serde_json::Value = serde_json::from_str(&stdout).unwrap();
+    assert_eq!(answer["image_width"], 640);
+
+    let out = dir.path().join("tuned.bpk");
+    let (code, _, stderr) = posematch(&[
+        "train",
+        "--images",
+        photos.path().to_str().unwrap(),
+        "--init",
+        "models/posematch-default.bpk",
+        "--steps",
+        "2",
+        "--batch",
+        "1",
+        "--search-size",
+        "64",
+        "--out",
+        out.to_str().unwrap(),
+    ]);
+    assert_eq!(code, 0, "{stderr}");
+    let (code, _, stderr) = posematch(&[
+        "match",
+        "--template",
+        template.to_str().unwrap(),
+        "--image",
+        photo.to_str().unwrap(),
+        "--weights",
+        out.to_str().unwrap(),
+    ]);
+    assert_eq!(code, 0, "{stderr}");
+
+    let (code, _, stderr) = posematch(&[
+        "train",
+        "--images",
+        photos.path().to_str().unwrap(),
+        "--steps",
+        "0",
+        "--out",
+        out.to_str().unwrap(),
+    ]);
+    assert_eq!(code, 2, "{stderr}");
+    assert!(stderr.contains("--steps"), "{stderr}");
+    assert_eq!(stderr.trim().lines().count(), 1, "{stderr}");
 }

@@ -62,6 +62,7 @@ pub enum WeightsCommand {
 #[derive(Args, Debug, Clone)]
 pub struct ModelArgs {
     /// Weights file: .bpk (PoseMatch), .pth/.pt or .safetensors (official PyTorch checkpoint).
+    /// Default: the weights embedded in this binary (models/README.md).
     #[arg(long)]
     pub weights: Option<PathBuf>,
     /// Input convention: `imagenet` (RGB, ImageNet mean/std; how the official checkpoint was
@@ -129,26 +130,27 @@ impl CliError {
     }
 }
 
-/// The default weights embedded in this binary, if the build has any.
-pub fn default_weights() -> Option<&'static [u8]> {
-    None
-}
+/// PoseMatch's own default weights, compiled into the binary so that a fresh machine needs no
+/// checkpoint from anywhere else. Trained from random initialisation with `posematch train`;
+/// provenance and measured accuracy in `models/README.md`.
+/// The bytes are 64-byte aligned: burnpack tensors are read in place as `f32`.
+pub const DEFAULT_WEIGHTS: &[u8] = &EMBEDDED.0;
+
+#[repr(C, align(64))]
+struct Aligned<Bytes: ?Sized>(Bytes);
+
+static EMBEDDED: &Aligned<[u8]> = &Aligned(*include_bytes!("../../models/posematch-default.bpk"));
 
 /// Loads the network from `--weights` or the embedded default.
 pub fn load_model(args: &ModelArgs) -> Result<Matcher, CliError> {
     let device = select_device()?;
-    let model: Tdcm = match (&args.weights, default_weights()) {
-        (Some(path), _) => load_weights(path, &device)?,
-        (None, Some(bytes)) => {
-            crate::model::load_weights_from_bytes(bytes, "embedded default weights", &device)?
-        }
-        (None, None) => {
-            return Err(CliError::Usage(
-                "no --weights given and this build has no default weights; pass --weights FILE \
-                 (.bpk, or the official .pth/.safetensors checkpoint)"
-                    .into(),
-            ));
-        }
+    let model: Tdcm = match &args.weights {
+        Some(path) => load_weights(path, &device)?,
+        None => crate::model::load_weights_from_bytes(
+            DEFAULT_WEIGHTS,
+            "embedded default weights",
+            &device,
+        )?,
     };
     Ok(Matcher::new(model, device, args.convention))
 }

@@ -6,7 +6,7 @@ use std::time::Duration;
 
 use clap::Args;
 
-use super::{CliError, default_weights, parse_convention};
+use super::{CliError, DEFAULT_WEIGHTS, parse_convention};
 use crate::matcher::Matcher;
 use crate::model::{Tdcm, load_weights, load_weights_from_bytes, select_device};
 use crate::service::{LogFormat, ModelLoader, Overrides, RunningServer, Settings};
@@ -85,21 +85,11 @@ fn model_loader(settings: &Settings) -> Result<ModelLoader, CliError> {
             path.display()
         )));
     }
-    if weights.is_none() && default_weights().is_none() {
-        return Err(CliError::Usage(
-            "no weights given (--weights, weights = in the config, POSEMATCH__WEIGHTS) and this build has no default weights"
-                .into(),
-        ));
-    }
     Ok(Box::new(move || {
         let device = select_device().map_err(|e| e.to_string())?;
         let model: Tdcm = match &weights {
             Some(path) => load_weights(path, &device),
-            None => load_weights_from_bytes(
-                default_weights().expect("checked above"),
-                "embedded default weights",
-                &device,
-            ),
+            None => load_weights_from_bytes(DEFAULT_WEIGHTS, "embedded default weights", &device),
         }
         .map_err(|e| e.to_string())?;
         Ok(Matcher::new(model, device, convention))

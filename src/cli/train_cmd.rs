@@ -83,6 +83,15 @@ pub fn run(args: TrainArgs) -> Result<(), CliError> {
         validation_pairs: args.validation_pairs,
     };
     let device = select_device()?;
+    // Without a terminal (a log file, a container) the bar is hidden; plain lines instead.
+    let terminal = std::io::IsTerminal::is_terminal(&std::io::stderr());
+    let say = |bar: &ProgressBar, line: String| {
+        if terminal {
+            bar.println(line);
+        } else {
+            eprintln!("{line}");
+        }
+    };
     let bar = ProgressBar::new(options.steps);
     bar.set_style(
         ProgressStyle::with_template(
@@ -96,13 +105,16 @@ pub fn run(args: TrainArgs) -> Result<(), CliError> {
             first_step, photos, ..
         } => {
             bar.set_position(first_step);
-            bar.println(format!(
-                "training on {photos} photos from step {first_step} (level {}, batch {}, {}x{} crops)",
-                options.level.name(),
-                options.batch,
-                options.search_side,
-                options.search_side
-            ));
+            say(
+                &bar,
+                format!(
+                    "training on {photos} photos from step {first_step} (level {}, batch {}, {}x{} crops)",
+                    options.level.name(),
+                    options.batch,
+                    options.search_side,
+                    options.search_side
+                ),
+            );
         }
         TrainEvent::Step {
             step,
@@ -113,22 +125,26 @@ pub fn run(args: TrainArgs) -> Result<(), CliError> {
             pairs_per_s,
         } => {
             bar.set_position(step);
-            bar.set_message(format!(
+            let status = format!(
                 "loss {loss:.3} (centre {centre:.3}, parameters {parameters:.3})  lr {learning_rate:.1e}  {pairs_per_s:.1} pairs/s"
-            ));
+            );
+            if !terminal && (step % 50 == 0 || step == options.steps) {
+                eprintln!("step {step}/{}: {status}", options.steps);
+            }
+            bar.set_message(status);
         }
         TrainEvent::Checkpoint { step, path } => {
-            bar.println(format!("step {step}: checkpoint {}", path.display()));
+            say(&bar, format!("step {step}: checkpoint {}", path.display()));
         }
         TrainEvent::Validation {
             step,
             network,
             refined,
         } => {
-            bar.println(format!(
-                "step {step}: validation\n{}",
-                table(&network, &refined)
-            ));
+            say(
+                &bar,
+                format!("step {step}: validation\n{}", table(&network, &refined)),
+            );
         }
     });
     bar.finish();

@@ -268,6 +268,7 @@ fn residual_cost(points: &AlignPoints, window: &GradientWindow, pose: &Pose) -> 
 type Matrix5 = [[f64; 5]; 5];
 
 /// `JᵀJ` and `Jᵀr` of the residuals at `pose`.
+#[allow(clippy::needless_range_loop)] // index form mirrors the matrix algebra
 fn normal_equations(
     points: &AlignPoints,
     window: &GradientWindow,
@@ -308,6 +309,7 @@ fn normal_equations(
 }
 
 /// Solves the 5x5 system by Gaussian elimination with partial pivoting.
+#[allow(clippy::needless_range_loop)] // index form mirrors the matrix algebra
 fn solve5(mut m: Matrix5, mut rhs: [f64; 5]) -> Option<[f64; 5]> {
     for col in 0..5 {
         let pivot = (col..5).max_by(|&a, &b| m[a][col].abs().total_cmp(&m[b][col].abs()))?;

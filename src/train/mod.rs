@@ -189,7 +189,7 @@ impl TrainOptions {
         if !(1..=256).contains(&self.batch) {
             return bad(format!("--batch {} must be in 1..=256", self.batch));
         }
-        if !(64..=1024).contains(&self.search_side) || self.search_side % 4 != 0 {
+        if !(64..=1024).contains(&self.search_side) || !self.search_side.is_multiple_of(4) {
             return bad(format!(
                 "--search-size {} must be a multiple of 4 in 64..=1024",
                 self.search_side
@@ -212,6 +212,13 @@ pub fn train(
     mut on_event: impl FnMut(TrainEvent),
 ) -> Result<TrainOutcome, TrainError> {
     options.check()?;
+    // Fail now, not at the first checkpoint, when the output folder cannot be written.
+    if let Some(parent) = options.out.parent().filter(|p| !p.as_os_str().is_empty()) {
+        std::fs::create_dir_all(parent).map_err(|e| TrainError::Checkpoint {
+            path: parent.to_owned(),
+            message: format!("cannot create the output folder: {e}"),
+        })?;
+    }
     let started = Instant::now();
     let (optim_path, progress_path) = checkpoint_paths(&options.out);
     let training_device = device.clone().autodiff();
