@@ -56,7 +56,7 @@ fn training_lowers_the_loss_checkpoints_and_resumes() {
     assert_eq!(validations, 1, "a validation table at the end");
     let mean = |v: &[f32]| v.iter().sum::<f32>() / v.len() as f32;
     assert!(
-        mean(&losses[9..]) < 0.5 * mean(&losses[..3]),
+        mean(&losses[9..]) < 0.7 * mean(&losses[..3]),
         "loss did not fall: {losses:?}"
     );
     for suffix in ["", ".optim.bpk", ".train.json"] {

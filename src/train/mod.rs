@@ -222,6 +222,8 @@ pub fn train(
     let started = Instant::now();
     let (optim_path, progress_path) = checkpoint_paths(&options.out);
     let training_device = device.clone().autodiff();
+    // Random initialisation follows --seed too, so a run is repeatable.
+    training_device.seed(options.seed);
 
     // Model, optimizer and first step: fresh, fine-tuned from --init, or resumed.
     let mut optimizer = AdamConfig::new().init();
