@@ -246,6 +246,33 @@ fn refinement_changes(
         })
 }
 
+/// The paper's table (header and one row per method), shared with `posematch train`.
+pub(super) fn summary_table(rows: &[(&str, Summary)]) -> String {
+    let mut lines = vec![
+        format!(
+            "| {:<22} | {:>11} | {:>8} | {:>11} | {:>6} | {:>6} | {:>8} |",
+            "method", "Loc.Err(px)", "ScaleErr", "Rot.Err(°)", "mIoU", "Succ", "ms/pair"
+        ),
+        format!(
+            "|{:-<24}|{:->13}|{:->10}|{:->13}|{:->8}|{:->8}|{:->10}|",
+            "", "", "", "", "", "", ""
+        ),
+    ];
+    for (name, s) in rows {
+        lines.push(format!(
+            "| {:<22} | {:>11.3} | {:>8.4} | {:>11.3} | {:>6.3} | {:>5.1}% | {:>8.1} |",
+            name,
+            s.loc_err_px,
+            s.scale_err,
+            s.rot_err_deg,
+            s.miou,
+            100.0 * s.success,
+            s.ms_per_pair
+        ));
+    }
+    lines.join("\n")
+}
+
 fn print_table(
     label: &str,
     rows: &[(&str, Summary)],
@@ -266,26 +293,7 @@ fn print_table(
         return;
     }
     println!("pairs: {label}");
-    println!(
-        "| {:<22} | {:>11} | {:>8} | {:>11} | {:>6} | {:>6} | {:>8} |",
-        "method", "Loc.Err(px)", "ScaleErr", "Rot.Err(°)", "mIoU", "Succ", "ms/pair"
-    );
-    println!(
-        "|{:-<24}|{:->13}|{:->10}|{:->13}|{:->8}|{:->8}|{:->10}|",
-        "", "", "", "", "", "", ""
-    );
-    for (name, s) in rows {
-        println!(
-            "| {:<22} | {:>11.3} | {:>8.4} | {:>11.3} | {:>6.3} | {:>5.1}% | {:>8.1} |",
-            name,
-            s.loc_err_px,
-            s.scale_err,
-            s.rot_err_deg,
-            s.miou,
-            100.0 * s.success,
-            s.ms_per_pair
-        );
-    }
+    println!("{}", summary_table(rows));
     println!("(errors over successful pairs, IoU >= 0.5; mIoU and Succ over all pairs)");
     if let Some((lost, gained)) = refinement_changes {
         println!(

@@ -164,20 +164,8 @@ pub fn run(args: TrainArgs) -> Result<(), CliError> {
 }
 
 fn table(network: &Summary, refined: &Summary) -> String {
-    let row = |name: &str, s: &Summary| {
-        format!(
-            "| {name:<22} | {:>11.3} | {:>8.4} | {:>11.3} | {:>6.3} | {:>5.1}% | {:>8.1} |",
-            s.loc_err_px,
-            s.scale_err,
-            s.rot_err_deg,
-            s.miou,
-            100.0 * s.success,
-            s.ms_per_pair
-        )
-    };
-    format!(
-        "| method                 | Loc.Err(px) | ScaleErr |  Rot.Err(°) |   mIoU |   Succ |  ms/pair |\n{}\n{}",
-        row("network only", network),
-        row("network + refinement", refined)
-    )
+    super::eval_cmd::summary_table(&[
+        ("network only", network.clone()),
+        ("network + refinement", refined.clone()),
+    ])
 }

@@ -62,41 +62,46 @@ impl GradientWindow {
         }
     }
 
-    /// Value at image coordinates `(x, y)` (bilinear, clamped to the window).
+    /// Bilinear weights at image coordinates `(x, y)`, clamped to the window: the four
+    /// neighbours' indices and the fractional offsets.
     #[inline]
-    fn value(&self, x: f32, y: f32) -> f32 {
+    fn corners(&self, x: f32, y: f32) -> ([usize; 4], f32, f32) {
         let (w, h) = (self.image.width, self.image.height);
         let x = (x - self.x0).clamp(0.0, (w - 1) as f32);
         let y = (y - self.y0).clamp(0.0, (h - 1) as f32);
         let (xi, yi) = (x as usize, y as usize);
         let (x1, y1) = ((xi + 1).min(w - 1), (yi + 1).min(h - 1));
-        let (fx, fy) = (x - xi as f32, y - yi as f32);
-        let v = &self.image.values;
-        let top = v[yi * w + xi] + (v[yi * w + x1] - v[yi * w + xi]) * fx;
-        let bottom = v[y1 * w + xi] + (v[y1 * w + x1] - v[y1 * w + xi]) * fx;
-        top + (bottom - top) * fy
+        (
+            [yi * w + xi, yi * w + x1, y1 * w + xi, y1 * w + x1],
+            x - xi as f32,
+            y - yi as f32,
+        )
+    }
+
+    /// Value at image coordinates `(x, y)` (bilinear, clamped to the window).
+    #[inline]
+    fn value(&self, x: f32, y: f32) -> f32 {
+        let (at, fx, fy) = self.corners(x, y);
+        bilinear(&self.image.values, at, fx, fy)
     }
 
     /// Value and gradient at image coordinates `(x, y)` (bilinear, clamped to the window).
     #[inline]
     fn sample(&self, x: f32, y: f32) -> (f32, f32, f32) {
-        let (w, h) = (self.image.width, self.image.height);
-        let x = (x - self.x0).clamp(0.0, (w - 1) as f32);
-        let y = (y - self.y0).clamp(0.0, (h - 1) as f32);
-        let (xi, yi) = (x as usize, y as usize);
-        let (x1, y1) = ((xi + 1).min(w - 1), (yi + 1).min(h - 1));
-        let (fx, fy) = (x - xi as f32, y - yi as f32);
-        let bilinear = |v: &[f32]| {
-            let top = v[yi * w + xi] + (v[yi * w + x1] - v[yi * w + xi]) * fx;
-            let bottom = v[y1 * w + xi] + (v[y1 * w + x1] - v[y1 * w + xi]) * fx;
-            top + (bottom - top) * fy
-        };
+        let (at, fx, fy) = self.corners(x, y);
         (
-            bilinear(&self.image.values),
-            bilinear(&self.gx),
-            bilinear(&self.gy),
+            bilinear(&self.image.values, at, fx, fy),
+            bilinear(&self.gx, at, fx, fy),
+            bilinear(&self.gy, at, fx, fy),
         )
     }
+}
+
+#[inline]
+fn bilinear(v: &[f32], [a, b, c, d]: [usize; 4], fx: f32, fy: f32) -> f32 {
+    let top = v[a] + (v[b] - v[a]) * fx;
+    let bottom = v[c] + (v[d] - v[c]) * fx;
+    top + (bottom - top) * fy
 }
 
 /// Template points: offsets from the template centre and values, taken from the template
@@ -112,24 +117,7 @@ pub(super) struct AlignPoints {
 impl AlignPoints {
     /// Every `stride`-th pixel of `template` blurred by `sigma` template pixels.
     pub(super) fn new(template: &GrayImage32, sigma: f32, max_side: usize) -> Self {
-        let blurred = gaussian_blur(template, sigma);
-        let stride = template
-            .width
-            .max(template.height)
-            .div_ceil(max_side)
-            .max(1);
-        let (cx, cy) = (
-            (template.width as f32 - 1.0) / 2.0,
-            (template.height as f32 - 1.0) / 2.0,
-        );
-        let mut offsets = Vec::new();
-        let mut values = Vec::new();
-        for y in (0..template.height).step_by(stride) {
-            for x in (0..template.width).step_by(stride) {
-                offsets.push((x as f32 - cx, y as f32 - cy));
-                values.push(blurred.values[y * template.width + x]);
-            }
-        }
+        let (offsets, values) = super::grid_points(&gaussian_blur(template, sigma), max_side);
         let sum: f64 = values.iter().map(|&t| t as f64).sum();
         let mean = sum / values.len().max(1) as f64;
         let spread = values.iter().map(|&t| (t as f64 - mean).powi(2)).sum();

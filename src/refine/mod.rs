@@ -66,6 +66,29 @@ impl GrayImage32 {
     }
 }
 
+/// Every `stride`-th pixel of `template` (at most ~`max_side` per side): offsets from the
+/// template centre and values.
+fn grid_points(template: &GrayImage32, max_side: usize) -> (Vec<(f32, f32)>, Vec<f32>) {
+    let stride = template
+        .width
+        .max(template.height)
+        .div_ceil(max_side)
+        .max(1);
+    let (cx, cy) = (
+        (template.width as f32 - 1.0) / 2.0,
+        (template.height as f32 - 1.0) / 2.0,
+    );
+    let mut offsets = Vec::new();
+    let mut values = Vec::new();
+    for y in (0..template.height).step_by(stride) {
+        for x in (0..template.width).step_by(stride) {
+            offsets.push((x as f32 - cx, y as f32 - cy));
+            values.push(template.values[y * template.width + x]);
+        }
+    }
+    (offsets, values)
+}
+
 /// Template points (offsets from the template centre) with zero-mean, unit-norm values.
 pub(crate) struct TemplatePoints {
     offsets: Vec<(f32, f32)>,
@@ -75,23 +98,7 @@ pub(crate) struct TemplatePoints {
 impl TemplatePoints {
     /// Every `stride`-th template pixel (at most ~`max_side` per side).
     pub(crate) fn new(template: &GrayImage32, max_side: usize) -> Self {
-        let stride = template
-            .width
-            .max(template.height)
-            .div_ceil(max_side)
-            .max(1);
-        let (cx, cy) = (
-            (template.width as f32 - 1.0) / 2.0,
-            (template.height as f32 - 1.0) / 2.0,
-        );
-        let mut offsets = Vec::new();
-        let mut values = Vec::new();
-        for y in (0..template.height).step_by(stride) {
-            for x in (0..template.width).step_by(stride) {
-                offsets.push((x as f32 - cx, y as f32 - cy));
-                values.push(template.values[y * template.width + x]);
-            }
-        }
+        let (offsets, values) = grid_points(template, max_side);
         let mean = values.iter().sum::<f32>() / values.len() as f32;
         let mut weights: Vec<f32> = values.iter().map(|v| v - mean).collect();
         let norm = weights.iter().map(|w| w * w).sum::<f32>().sqrt();
