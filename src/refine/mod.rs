@@ -7,7 +7,8 @@
 //! alignment on natural images (reference README), so it cannot rank candidates finely.
 //!
 //! 1. Angle x scales on a sparse grid of template points: ±30° in 3° steps x five factors
-//!    0.7–1.4 per axis; then scales ±10 % and the angle ±4° in finer steps.
+//!    0.7–1.4 per axis; if nothing there scores well, the whole circle in 6° steps (a network
+//!    angle can be far off); then scales ±10 % and the angle ±4° in finer steps.
 //! 2. Align: all five parameters jointly by Gauss–Newton (Lucas–Kanade with
 //!    Levenberg–Marquardt damping, [`align`]) on the image blurred by 2, then 1 pixel, then
 //!    sharp, from the grid's best pose and from the initial one; the better-scoring result wins.
@@ -18,6 +19,8 @@
 //! its centre stays within a third of the object's size, so that refinement does not trade an
 //! object the network found for a better-looking neighbour.
 
+use std::cell::Cell;
+
 use crate::geometry::{Pose, wrap_angle_deg};
 
 mod align;
@@ -26,6 +29,10 @@ use crate::imaging::RgbImage32;
 
 /// ZNCC below which the refined alignment is not trusted (the content is too ambiguous).
 const MIN_MATCH_SCORE: f32 = 0.6;
+
+/// Sparse ZNCC under which the ±30° grid around the network's angle is not trusted and the
+/// whole circle is searched (a true match at the right angle scores well above this).
+const FULL_CIRCLE_BELOW: f32 = 0.8;
 
 /// Blur of the coarse-to-fine alignment levels, in image pixels for an object 36 pixels across
 /// (proportionally more for larger objects, whose start is proportionally further off): a wide
@@ -139,11 +146,11 @@ pub fn refine_pose(template: &GrayImage32, image: &GrayImage32, initial: &Pose) 
 
     // 1. Angle and scales together (the network's scale is its coarsest output, and a wrong
     //    scale hides the right angle): ±30° in 3° steps x factors 0.7–1.4 on each axis.
-    let mut best_sparse = sparse.score(image, &best);
-    let mut try_pose = |candidate: Pose, best: &mut Pose| {
+    let best_sparse = Cell::new(sparse.score(image, &best));
+    let try_pose = |candidate: Pose, best: &mut Pose| {
         let s = sparse.score(image, &candidate);
-        if s > best_sparse {
-            best_sparse = s;
+        if s > best_sparse.get() {
+            best_sparse.set(s);
             *best = candidate;
         }
     };
@@ -158,6 +165,29 @@ pub fn refine_pose(template: &GrayImage32, image: &GrayImage32, initial: &Pose) 
                     ..*initial
                 };
                 try_pose(candidate, &mut best);
+            }
+        }
+    }
+    // 1b. A poor best means the network's angle may be more than 30° off (a weakly trained
+    //     model, a symmetric-looking part): search the whole circle in 6° steps at three
+    //     scale factors per axis, which costs about as much as step 1 and only for such poses.
+    if best_sparse.get() < FULL_CIRCLE_BELOW {
+        for k in 1..60 {
+            let offset = 6.0 * k as f32;
+            if offset <= 30.0 || offset >= 330.0 {
+                continue; // searched in step 1
+            }
+            for i in 0..3 {
+                for j in 0..3 {
+                    let factor = |k: i32| 0.85f32 * 1.18f32.powi(k);
+                    let candidate = Pose {
+                        angle_deg: initial.angle_deg + offset,
+                        scale_x: initial.scale_x * factor(i),
+                        scale_y: initial.scale_y * factor(j),
+                        ..*initial
+                    };
+                    try_pose(candidate, &mut best);
+                }
             }
         }
     }
@@ -267,6 +297,23 @@ mod tests {
         }
     }
 
+    /// The 36x36 template that `truth` maps onto `image`.
+    fn cut_template(image: &GrayImage32, truth: &Pose) -> GrayImage32 {
+        let (tw, th) = (36usize, 36usize);
+        let mut values = Vec::new();
+        for b in 0..th {
+            for a in 0..tw {
+                let (x, y) = truth.map_point(a as f32 - 17.5, b as f32 - 17.5);
+                values.push(image.sample(x, y));
+            }
+        }
+        GrayImage32 {
+            width: tw,
+            height: th,
+            values,
+        }
+    }
+
     #[test]
     fn recovers_a_known_pose_from_a_rough_start() {
         let image = texture(160, 160);
@@ -278,20 +325,7 @@ mod tests {
             scale_y: 0.9,
             score: 1.0,
         };
-        // Cut the template that the truth pose maps onto the image.
-        let (tw, th) = (36usize, 36usize);
-        let mut values = Vec::new();
-        for b in 0..th {
-            for a in 0..tw {
-                let (x, y) = truth.map_point(a as f32 - 17.5, b as f32 - 17.5);
-                values.push(image.sample(x, y));
-            }
-        }
-        let template = GrayImage32 {
-            width: tw,
-            height: th,
-            values,
-        };
+        let template = cut_template(&image, &truth);
         let rough = Pose {
             x: 81.0,
             y: 79.0,
@@ -315,5 +349,37 @@ mod tests {
             "{refined:?}"
         );
         assert_eq!(refined.score, rough.score);
+    }
+
+    #[test]
+    fn recovers_an_angle_far_outside_the_local_grid() {
+        let image = texture(160, 160);
+        let truth = Pose {
+            x: 80.3,
+            y: 79.6,
+            angle_deg: 33.0,
+            scale_x: 1.2,
+            scale_y: 0.9,
+            score: 1.0,
+        };
+        let template = cut_template(&image, &truth);
+        // A weakly trained network: centre roughly right, angle 110° off.
+        let rough = Pose {
+            x: 81.5,
+            y: 78.5,
+            angle_deg: 143.0,
+            scale_x: 1.1,
+            scale_y: 1.0,
+            score: 0.6,
+        };
+        let refined = refine_pose(&template, &image, &rough);
+        assert!(
+            (refined.x - truth.x).abs() < 0.2 && (refined.y - truth.y).abs() < 0.2,
+            "{refined:?}"
+        );
+        assert!(
+            (refined.angle_deg - truth.angle_deg).abs() < 0.3,
+            "{refined:?}"
+        );
     }
 }
