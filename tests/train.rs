@@ -138,7 +138,8 @@ fn absurd_options_are_refused_with_the_flag_named() {
 }
 
 /// The shipped binary runs on its embedded default weights, and `posematch train` is a real
-/// command: a short fine-tuning run from them writes weights that `match` then loads.
+/// command: a short fine-tuning run from them (`--init default`, all a user of the binary or the
+/// container has) writes weights that `match` then loads.
 #[test]
 fn cli_matches_on_embedded_weights_and_fine_tunes_them() {
     use common::posematch;
@@ -168,7 +169,7 @@ fn cli_matches_on_embedded_weights_and_fine_tunes_them() {
         "--images",
         photos.path().to_str().unwrap(),
         "--init",
-        "models/posematch-default.bpk",
+        "default",
         "--steps",
         "2",
         "--batch",
@@ -179,6 +180,10 @@ fn cli_matches_on_embedded_weights_and_fine_tunes_them() {
         out.to_str().unwrap(),
     ]);
     assert_eq!(code, 0, "{stderr}");
+    assert!(
+        stderr.contains("from the embedded default weights"),
+        "{stderr}"
+    );
     let (code, _, stderr) = posematch(&[
         "match",
         "--template",

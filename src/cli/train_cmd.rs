@@ -7,11 +7,11 @@ use std::time::Duration;
 use clap::Args;
 use indicatif::{ProgressBar, ProgressStyle};
 
-use super::CliError;
+use super::{CliError, DEFAULT_WEIGHTS};
 use crate::evaluation::Summary;
 use crate::model::select_device;
 use crate::synth::Level;
-use crate::train::{TrainError, TrainEvent, TrainOptions, train};
+use crate::train::{InitialWeights, TrainError, TrainEvent, TrainOptions, train};
 
 #[derive(Args, Debug)]
 pub struct TrainArgs {
@@ -39,7 +39,9 @@ pub struct TrainArgs {
     /// Seed of the pair sequence.
     #[arg(long, default_value_t = 0)]
     seed: u64,
-    /// Start from these weights (.bpk, .pth or .safetensors) instead of random initialisation.
+    /// Start from these weights (.bpk, .pth or .safetensors) instead of random initialisation;
+    /// `default` fine-tunes the weights embedded in this binary (`./default` for a file of
+    /// that name).
     #[arg(long)]
     init: Option<PathBuf>,
     /// Continue the run checkpointed at --out.
@@ -75,12 +77,27 @@ pub fn run(args: TrainArgs) -> Result<(), CliError> {
         search_side: args.search_size,
         learning_rate: args.lr,
         seed: args.seed,
-        init: args.init,
+        init: args.init.map(|path| {
+            if path.as_os_str() == "default" {
+                InitialWeights::Embedded {
+                    bytes: DEFAULT_WEIGHTS,
+                    name: "embedded default weights",
+                }
+            } else {
+                InitialWeights::File(path)
+            }
+        }),
         resume: args.resume,
         out: args.out,
         checkpoint_every: Duration::from_secs_f64(args.checkpoint_minutes * 60.0),
         validate_every: args.validate_every,
         validation_pairs: args.validation_pairs,
+    };
+    let starting_point = match (&options.init, options.resume) {
+        (_, true) => format!("resuming {}", options.out.display()),
+        (Some(InitialWeights::File(path)), _) => format!("from {}", path.display()),
+        (Some(InitialWeights::Embedded { name, .. }), _) => format!("from the {name}"),
+        (None, _) => format!("from random weights (seed {})", options.seed),
     };
     let device = select_device()?;
     // Without a terminal (a log file, a container) the bar is hidden; plain lines instead.
@@ -108,11 +125,12 @@ pub fn run(args: TrainArgs) -> Result<(), CliError> {
             say(
                 &bar,
                 format!(
-                    "training on {photos} photos from step {first_step} (level {}, batch {}, {}x{} crops)",
+                    "training on {photos} photos from step {first_step} (level {}, batch {}, {}x{} crops), {}",
                     options.level.name(),
                     options.batch,
                     options.search_side,
-                    options.search_side
+                    options.search_side,
+                    starting_point
                 ),
             );
         }
