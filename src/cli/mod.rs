@@ -136,6 +136,9 @@ impl CliError {
 /// The bytes are 64-byte aligned: burnpack tensors are read in place as `f32`.
 pub const DEFAULT_WEIGHTS: &[u8] = &EMBEDDED.0;
 
+/// How messages name [`DEFAULT_WEIGHTS`].
+pub const DEFAULT_WEIGHTS_NAME: &str = "embedded default weights";
+
 #[repr(C, align(64))]
 struct Aligned<Bytes: ?Sized>(Bytes);
 
@@ -146,11 +149,9 @@ pub fn load_model(args: &ModelArgs) -> Result<Matcher, CliError> {
     let device = select_device()?;
     let model: Tdcm = match &args.weights {
         Some(path) => load_weights(path, &device)?,
-        None => crate::model::load_weights_from_bytes(
-            DEFAULT_WEIGHTS,
-            "embedded default weights",
-            &device,
-        )?,
+        None => {
+            crate::model::load_weights_from_bytes(DEFAULT_WEIGHTS, DEFAULT_WEIGHTS_NAME, &device)?
+        }
     };
     Ok(Matcher::new(model, device, args.convention))
 }

@@ -6,7 +6,7 @@ use std::time::Duration;
 
 use clap::Args;
 
-use super::{CliError, DEFAULT_WEIGHTS, parse_convention};
+use super::{CliError, DEFAULT_WEIGHTS, DEFAULT_WEIGHTS_NAME, parse_convention};
 use crate::matcher::Matcher;
 use crate::model::{Tdcm, load_weights, load_weights_from_bytes, select_device};
 use crate::service::{LogFormat, ModelLoader, Overrides, RunningServer, Settings};
@@ -89,7 +89,7 @@ fn model_loader(settings: &Settings) -> Result<ModelLoader, CliError> {
         let device = select_device().map_err(|e| e.to_string())?;
         let model: Tdcm = match &weights {
             Some(path) => load_weights(path, &device),
-            None => load_weights_from_bytes(DEFAULT_WEIGHTS, "embedded default weights", &device),
+            None => load_weights_from_bytes(DEFAULT_WEIGHTS, DEFAULT_WEIGHTS_NAME, &device),
         }
         .map_err(|e| e.to_string())?;
         Ok(Matcher::new(model, device, convention))

@@ -7,7 +7,7 @@ use std::time::Duration;
 use clap::Args;
 use indicatif::{ProgressBar, ProgressStyle};
 
-use super::{CliError, DEFAULT_WEIGHTS};
+use super::{CliError, DEFAULT_WEIGHTS, DEFAULT_WEIGHTS_NAME};
 use crate::evaluation::Summary;
 use crate::model::select_device;
 use crate::synth::Level;
@@ -81,7 +81,7 @@ pub fn run(args: TrainArgs) -> Result<(), CliError> {
             if path.as_os_str() == "default" {
                 InitialWeights::Embedded {
                     bytes: DEFAULT_WEIGHTS,
-                    name: "embedded default weights",
+                    name: DEFAULT_WEIGHTS_NAME,
                 }
             } else {
                 InitialWeights::File(path)

@@ -154,42 +154,32 @@ pub fn refine_pose(template: &GrayImage32, image: &GrayImage32, initial: &Pose) 
             *best = candidate;
         }
     };
-    for k in -10..=10 {
-        for i in 0..5 {
-            for j in 0..5 {
-                let factor = |k: i32| 0.7f32 * 2f32.powf(k as f32 / 4.0);
-                let candidate = Pose {
-                    angle_deg: initial.angle_deg + 3.0 * k as f32,
-                    scale_x: initial.scale_x * factor(i),
-                    scale_y: initial.scale_y * factor(j),
-                    ..*initial
-                };
-                try_pose(candidate, &mut best);
-            }
-        }
-    }
-    // 1b. A poor best means the network's angle may be more than 30° off (a weakly trained
-    //     model, a symmetric-looking part): search the whole circle in 6° steps at three
-    //     scale factors per axis, which costs about as much as step 1 and only for such poses.
-    if best_sparse.get() < FULL_CIRCLE_BELOW {
-        for k in 1..60 {
-            let offset = 6.0 * k as f32;
-            if offset <= 30.0 || offset >= 330.0 {
-                continue; // searched in step 1
-            }
-            for i in 0..3 {
-                for j in 0..3 {
-                    let factor = |k: i32| 0.85f32 * 1.18f32.powi(k);
+    // Every angle offset x every pair of scale factors, around the network's pose.
+    let search = |angle_offsets: &[f32], factors: &[f32], best: &mut Pose| {
+        for &offset in angle_offsets {
+            for &factor_x in factors {
+                for &factor_y in factors {
                     let candidate = Pose {
                         angle_deg: initial.angle_deg + offset,
-                        scale_x: initial.scale_x * factor(i),
-                        scale_y: initial.scale_y * factor(j),
+                        scale_x: initial.scale_x * factor_x,
+                        scale_y: initial.scale_y * factor_y,
                         ..*initial
                     };
-                    try_pose(candidate, &mut best);
+                    try_pose(candidate, best);
                 }
             }
         }
+    };
+    let near_offsets: Vec<f32> = (-10..=10).map(|k| 3.0 * k as f32).collect();
+    let wide_factors: Vec<f32> = (0..5).map(|k| 0.7f32 * 2f32.powf(k as f32 / 4.0)).collect();
+    search(&near_offsets, &wide_factors, &mut best);
+    // 1b. A poor best means the network's angle may be more than 30° off (a weakly trained
+    //     model, a symmetric-looking part): search the rest of the circle in 6° steps at three
+    //     scale factors per axis, which costs about as much as step 1 and only for such poses.
+    if best_sparse.get() < FULL_CIRCLE_BELOW {
+        let far_offsets: Vec<f32> = (6..55).map(|k| 6.0 * k as f32).collect();
+        let factors: Vec<f32> = (0..3).map(|k| 0.85f32 * 1.18f32.powi(k)).collect();
+        search(&far_offsets, &factors, &mut best);
     }
     // 2. Scales finer around the best: a 5x5 grid of factors ±10 %.
     let base = best;
@@ -297,6 +287,33 @@ mod tests {
         }
     }
 
+    /// Centre within 0.2 px and angle within 0.3° of the truth.
+    fn assert_centre_and_angle(refined: &Pose, truth: &Pose) {
+        assert!(
+            (refined.x - truth.x).abs() < 0.2 && (refined.y - truth.y).abs() < 0.2,
+            "{refined:?}"
+        );
+        assert!(
+            (refined.angle_deg - truth.angle_deg).abs() < 0.3,
+            "{refined:?}"
+        );
+    }
+
+    /// A textured image, a true pose in it and the 36x36 template that pose maps onto it.
+    fn posed_texture() -> (GrayImage32, Pose, GrayImage32) {
+        let image = texture(160, 160);
+        let truth = Pose {
+            x: 80.3,
+            y: 79.6,
+            angle_deg: 33.0,
+            scale_x: 1.2,
+            scale_y: 0.9,
+            score: 1.0,
+        };
+        let template = cut_template(&image, &truth);
+        (image, truth, template)
+    }
+
     /// The 36x36 template that `truth` maps onto `image`.
     fn cut_template(image: &GrayImage32, truth: &Pose) -> GrayImage32 {
         let (tw, th) = (36usize, 36usize);
@@ -316,16 +333,7 @@ mod tests {
 
     #[test]
     fn recovers_a_known_pose_from_a_rough_start() {
-        let image = texture(160, 160);
-        let truth = Pose {
-            x: 80.3,
-            y: 79.6,
-            angle_deg: 33.0,
-            scale_x: 1.2,
-            scale_y: 0.9,
-            score: 1.0,
-        };
-        let template = cut_template(&image, &truth);
+        let (image, truth, template) = posed_texture();
         let rough = Pose {
             x: 81.0,
             y: 79.0,
@@ -335,14 +343,7 @@ mod tests {
             score: 0.8,
         };
         let refined = refine_pose(&template, &image, &rough);
-        assert!(
-            (refined.x - truth.x).abs() < 0.2 && (refined.y - truth.y).abs() < 0.2,
-            "{refined:?}"
-        );
-        assert!(
-            (refined.angle_deg - truth.angle_deg).abs() < 0.3,
-            "{refined:?}"
-        );
+        assert_centre_and_angle(&refined, &truth);
         assert!(
             (refined.scale_x - truth.scale_x).abs() < 0.01
                 && (refined.scale_y - truth.scale_y).abs() < 0.01,
@@ -353,16 +354,7 @@ mod tests {
 
     #[test]
     fn recovers_an_angle_far_outside_the_local_grid() {
-        let image = texture(160, 160);
-        let truth = Pose {
-            x: 80.3,
-            y: 79.6,
-            angle_deg: 33.0,
-            scale_x: 1.2,
-            scale_y: 0.9,
-            score: 1.0,
-        };
-        let template = cut_template(&image, &truth);
+        let (image, truth, template) = posed_texture();
         // A weakly trained network: centre roughly right, angle 110° off.
         let rough = Pose {
             x: 81.5,
@@ -373,13 +365,6 @@ mod tests {
             score: 0.6,
         };
         let refined = refine_pose(&template, &image, &rough);
-        assert!(
-            (refined.x - truth.x).abs() < 0.2 && (refined.y - truth.y).abs() < 0.2,
-            "{refined:?}"
-        );
-        assert!(
-            (refined.angle_deg - truth.angle_deg).abs() < 0.3,
-            "{refined:?}"
-        );
+        assert_centre_and_angle(&refined, &truth);
     }
 }
