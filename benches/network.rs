@@ -158,6 +158,7 @@ fn benches(c: &mut Criterion) {
         scale_x: 1.1,
         scale_y: 0.9,
         score: 1.0,
+        network_score: 0.0,
     };
     let mut values = Vec::new();
     for b in 0..36 {
@@ -179,6 +180,7 @@ fn benches(c: &mut Criterion) {
         scale_x: 1.25,
         scale_y: 0.85,
         score: 0.8,
+        network_score: 0.0,
     };
     group.bench_function("refine_instance_36", |b| {
         b.iter(|| refine_pose(&gray_template, &gray_search, &rough))

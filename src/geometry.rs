@@ -15,7 +15,13 @@ pub struct Pose {
     pub angle_deg: f32,
     pub scale_x: f32,
     pub scale_y: f32,
+    /// How well the template matches the image at this pose, in [0, 1]: the verified similarity
+    /// (ZNCC over the template at the refined pose, negative values as 0), or the network's
+    /// heatmap value where nothing verified it (`no_refine`).
     pub score: f32,
+    /// The network's heatmap value at the instance's peak (0 where no network was involved).
+    #[serde(default)]
+    pub network_score: f32,
 }
 
 impl Pose {
@@ -133,6 +139,7 @@ mod tests {
             scale_x,
             scale_y,
             score: 1.0,
+            network_score: 0.0,
         }
     }
 

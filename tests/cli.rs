@@ -129,7 +129,15 @@ fn batch_mode_reports_each_line_and_survives_bad_ones() {
     assert_eq!(lines.len(), 4);
     assert_eq!(lines[0]["id"], 1);
     let pose = &lines[0]["poses"][0];
-    for key in ["x", "y", "angle_deg", "scale_x", "scale_y", "score"] {
+    for key in [
+        "x",
+        "y",
+        "angle_deg",
+        "scale_x",
+        "scale_y",
+        "score",
+        "network_score",
+    ] {
         assert!(pose[key].is_number(), "{key} missing in {pose}");
     }
     assert!(lines[0]["ms"].as_f64().unwrap() > 0.0);

@@ -6,7 +6,7 @@ mod common;
 
 use burn::prelude::*;
 use common::{reference_dir, structured_photo_dir};
-use posematch::evaluation::pair_error;
+use posematch::evaluation::{ANY_PEAK, match_pair, pair_error};
 use posematch::geometry::Pose;
 use posematch::imaging::InputConvention;
 use posematch::matcher::{MatchOptions, Matcher};
@@ -43,6 +43,7 @@ fn refinement_recovers_the_true_pose_from_a_rough_start() {
             scale_x: truth.scale_x * rng.random_range(0.85..1.15),
             scale_y: truth.scale_y * rng.random_range(0.85..1.15),
             score: 0.7,
+            network_score: 0.0,
         };
         let refined = refine_pose(
             &GrayImage32::from_rgb(&pair.template),
@@ -72,7 +73,7 @@ fn refinement_sharpens_the_official_network_and_never_loses_an_object() {
     let photos = PhotoSet::load(photos_dir.path(), 224).unwrap();
     let options = MatchOptions {
         max_instances: 1,
-        min_score: 0.01,
+        min_score: Some(0.01),
         refine: false,
         ..MatchOptions::default()
     };
@@ -120,5 +121,80 @@ fn refinement_sharpens_the_official_network_and_never_loses_an_object() {
         refined_angle / (coarse_hits as f32) < 0.5,
         "refined angle error {}° on the network's hits",
         refined_angle / coarse_hits as f32
+    );
+}
+
+/// Single-instance pairs through the three paths of `posematch eval` (one network pass each):
+/// objects found by the network's best peak, by that peak refined and by verified candidates.
+fn three_paths(matcher: &Matcher, pairs: u64) -> [usize; 3] {
+    let photos_dir = structured_photo_dir();
+    let photos = PhotoSet::load(photos_dir.path(), 224).unwrap();
+    let options = MatchOptions {
+        max_instances: 1,
+        ..MatchOptions::default()
+    };
+    let mut found = [0; 3];
+    for index in 0..pairs {
+        let pair = make_pair(&photos, &spec(), 3, index).unwrap();
+        let truth = pair.truth[0];
+        let run = match_pair(matcher, &pair, &options, ANY_PEAK, true).unwrap();
+        let answered: Vec<Pose> = run
+            .verified
+            .iter()
+            .filter(|p| p.score >= options.min_score)
+            .copied()
+            .collect();
+        for (path, poses) in [run.network, run.refined, answered].iter().enumerate() {
+            if let Some(p) = poses.first() {
+                let error = pair_error(p, &truth, 36.0, 36.0);
+                if error.iou >= 0.5 {
+                    found[path] += 1;
+                    if path == 2 {
+                        // A verified answer is a refined one: precise, and scored by similarity.
+                        assert!(error.centre_px < 0.5, "{error:?}");
+                        assert!(p.score > 0.8 && p.network_score > 0.0, "{p:?}");
+                    }
+                }
+            }
+        }
+    }
+    found
+}
+
+#[test]
+fn verified_candidates_find_what_the_best_peak_misses_with_the_embedded_weights() {
+    let device = Device::flex();
+    let model = posematch::model::load_weights_from_bytes(
+        posematch::cli::DEFAULT_WEIGHTS,
+        "default",
+        &device,
+    )
+    .unwrap();
+    let matcher = Matcher::new(model, device, InputConvention::ImagenetRgb);
+    let pairs = 24;
+    let [network, refined, verified] = three_paths(&matcher, pairs);
+    println!(
+        "{pairs} pairs, embedded weights: network {network}, refined {refined}, verified {verified}"
+    );
+    assert!(
+        verified >= refined + pairs as usize / 8,
+        "verification found {verified}, the refined best peak {refined}"
+    );
+}
+
+#[test]
+fn verified_candidates_keep_what_the_official_network_finds() {
+    let Some(dir) = reference_dir() else { return };
+    let device = Device::flex();
+    let model = load_weights(&dir.join("tdcm-official.pth"), &device).unwrap();
+    let matcher = Matcher::new(model, device, InputConvention::ImagenetRgb);
+    let pairs = 16;
+    let [network, refined, verified] = three_paths(&matcher, pairs);
+    println!(
+        "{pairs} pairs, official weights: network {network}, refined {refined}, verified {verified}"
+    );
+    assert!(
+        verified >= refined,
+        "verification found {verified}, the refined best peak {refined}"
     );
 }

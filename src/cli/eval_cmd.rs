@@ -1,5 +1,8 @@
 //! `posematch eval`: generate pairs with exact truth from a folder of photos, match them, and
-//! print the paper's metrics (coarse network pose and refined pose side by side).
+//! print the paper's metrics for three paths side by side: the network's best peak, that peak
+//! refined (the path before verification), and verified candidates (the default); for
+//! multi-instance scenes precision and recall; and how the verified score relates to being
+//! right (the calibration table).
 
 use std::io::Write;
 use std::path::{Path, PathBuf};
@@ -10,7 +13,8 @@ use serde_json::json;
 
 use super::{CliError, ModelArgs, load_model};
 use crate::evaluation::{
-    DetectionCounts, PairError, Summary, match_detections, match_pair, pair_error, summarise,
+    ANY_PEAK, DetectionCounts, PairError, Summary, match_detections, match_pair,
+    matched_predictions, pair_error, summarise,
 };
 use crate::geometry::Pose;
 use crate::matcher::MatchOptions;
@@ -39,9 +43,19 @@ pub struct EvalArgs {
     /// Seed of the pair generator; the same seed gives the same pairs.
     #[arg(long, default_value_t = 0)]
     pub seed: u64,
-    /// Only the coarse network pose (no refinement row).
+    /// Only the network's poses (no refined and verified rows).
     #[arg(long)]
     pub no_refine: bool,
+    /// `min_score` of the verified path (as `posematch match --min-score`; default
+    /// 0.8).
+    #[arg(long)]
+    pub min_score: Option<f32>,
+    /// Heatmap value from which a peak is a candidate (as `posematch match`).
+    #[arg(long, default_value_t = MatchOptions::default().candidate_threshold)]
+    pub candidate_threshold: f32,
+    /// Most candidates verified per tile; 0 = automatic (as `posematch match`).
+    #[arg(long, default_value_t = MatchOptions::default().max_candidates)]
+    pub max_candidates: usize,
     /// Multi-instance images (320x320, 2–8 instances) with precision/recall instead of pairs.
     #[arg(long)]
     pub multi_instance: bool,
@@ -100,19 +114,31 @@ pub fn run(args: EvalArgs) -> Result<(), CliError> {
         min_structure: args.min_structure,
     };
     // No scale range: the network sees objects at the template's size, as it was trained.
-    // Single-instance pairs always hold the object, so the best peak is the answer whatever its
-    // score (as in the paper and the official decode); multi-instance keeps the default 0.5.
+    // Single-instance pairs always hold the object, so the network path takes its best peak
+    // whatever its value (as in the paper and the official decode); multi-instance scenes keep
+    // the heatmap threshold of the network path before verification. The verified path runs
+    // with the CLI's options.
     let options = MatchOptions {
-        max_instances: if args.multi_instance { 16 } else { 1 },
-        min_score: if args.multi_instance { 0.5 } else { 0.01 },
-        refine: false,
+        max_instances: if args.multi_instance {
+            MatchOptions::default().max_instances
+        } else {
+            1
+        },
+        min_score: args.min_score,
+        candidate_threshold: args.candidate_threshold,
+        max_candidates: args.max_candidates,
         ..MatchOptions::default()
     };
+    options.validate().map_err(CliError::Usage)?;
+    let network_min_score = if args.multi_instance {
+        NETWORK_MIN_SCORE
+    } else {
+        ANY_PEAK
+    };
     let mut saver = args.save.as_deref().map(PairSaver::new).transpose()?;
-    let mut coarse: Vec<(Option<PairError>, f64)> = Vec::new();
-    let mut refined: Vec<(Option<PairError>, f64)> = Vec::new();
-    let (mut coarse_counts, mut refined_counts) =
-        (DetectionCounts::default(), DetectionCounts::default());
+    let mut rows: [Vec<(Option<PairError>, f64)>; 3] = Default::default();
+    let mut counts = [DetectionCounts::default(); 3];
+    let mut calibration = Calibration::default();
     for index in 0..args.count {
         let pair = if args.multi_instance {
             make_multi_instance(
@@ -130,35 +156,40 @@ pub fn run(args: EvalArgs) -> Result<(), CliError> {
         if let Some(saver) = saver.as_mut() {
             saver.save(index, &pair)?;
         }
-        let (coarse_poses, coarse_ms, refined_poses, refine_ms) = match &matcher {
+        let (ptw, pth) = (pair.template.width as f32, pair.template.height as f32);
+        let runs: Vec<(Vec<Pose>, f64)> = match &matcher {
             Some(matcher) => {
-                let run = match_pair(matcher, &pair, &options, !args.no_refine)?;
-                (run.coarse, run.coarse_ms, run.refined, run.refine_ms)
+                let run = match_pair(matcher, &pair, &options, network_min_score, !args.no_refine)?;
+                let flags = matched_predictions(&run.verified, &pair.truth, ptw, pth);
+                for (pose, &true_positive) in run.verified.iter().zip(&flags) {
+                    calibration.add(pose.score, true_positive);
+                }
+                let answered: Vec<Pose> = run
+                    .verified
+                    .into_iter()
+                    .filter(|p| p.score >= options.effective_min_score())
+                    .collect();
+                vec![
+                    (run.network, run.network_ms),
+                    (run.refined, run.refined_ms),
+                    (answered, run.verified_ms),
+                ]
             }
-            None => run_ncc(
+            None => vec![run_ncc(
                 &pair,
                 &options,
                 args.level,
                 !args.no_refine,
                 args.multi_instance,
-            ),
+            )],
         };
-        let (ptw, pth) = (pair.template.width as f32, pair.template.height as f32);
-        if args.multi_instance {
-            coarse_counts.add(match_detections(&coarse_poses, &pair.truth, ptw, pth));
-            refined_counts.add(match_detections(&refined_poses, &pair.truth, ptw, pth));
-        } else {
-            let truth = &pair.truth[0];
-            coarse.push((
-                coarse_poses.first().map(|p| pair_error(p, truth, ptw, pth)),
-                coarse_ms,
-            ));
-            refined.push((
-                refined_poses
-                    .first()
-                    .map(|p| pair_error(p, truth, ptw, pth)),
-                coarse_ms + refine_ms,
-            ));
+        for (row, (poses, ms)) in runs.into_iter().enumerate() {
+            if args.multi_instance {
+                counts[row].add(match_detections(&poses, &pair.truth, ptw, pth));
+            } else {
+                let truth = &pair.truth[0];
+                rows[row].push((poses.first().map(|p| pair_error(p, truth, ptw, pth)), ms));
+            }
         }
     }
     let label = format!(
@@ -170,48 +201,62 @@ pub fn run(args: EvalArgs) -> Result<(), CliError> {
         args.seed,
         args.min_structure
     );
+    let names: Vec<&str> = match (&matcher, args.no_refine) {
+        (Some(_), false) => vec![
+            "tdcm network top-1",
+            "tdcm top-1 refined",
+            "tdcm verified (default)",
+        ],
+        (Some(_), true) => vec!["tdcm network top-1"],
+        (None, false) => vec!["ncc + refinement"],
+        (None, true) => vec!["ncc"],
+    };
+    let calibration = (matcher.is_some() && !args.no_refine).then_some(&calibration);
     if args.multi_instance {
-        print_detection(
-            &label,
-            &coarse_counts,
-            (!args.no_refine).then_some(&refined_counts),
-            args.json,
-        );
+        let mut shown: Vec<(&str, &DetectionCounts)> = names.iter().copied().zip(&counts).collect();
+        if matcher.is_some() && !args.no_refine {
+            shown.remove(1); // the refined network poses are the network's detections, moved
+        }
+        print_detection(&label, &shown, calibration, args.json);
     } else {
-        let rows = if matcher.is_some() {
-            [("tdcm (network only)", summarise(&coarse))]
-                .into_iter()
-                .chain((!args.no_refine).then(|| ("tdcm + refinement", summarise(&refined))))
-                .collect::<Vec<_>>()
-        } else {
-            let name = if args.no_refine {
-                "ncc"
-            } else {
-                "ncc + refinement"
-            };
-            vec![(name, summarise(&coarse))]
-        };
-        let changes =
-            (matcher.is_some() && !args.no_refine).then(|| refinement_changes(&coarse, &refined));
-        print_table(&label, &rows, changes, args.json);
+        let summaries: Vec<(&str, Summary)> = names
+            .iter()
+            .zip(&rows)
+            .map(|(name, results)| (*name, summarise(results)))
+            .collect();
+        let changes = (matcher.is_some() && !args.no_refine).then(|| {
+            (
+                path_changes(&rows[0], &rows[1]),
+                path_changes(&rows[0], &rows[2]),
+            )
+        });
+        print_table(&label, &summaries, changes, calibration, args.json);
     }
     Ok(())
 }
 
-/// The classical baseline on one pair (refined inside); same return shape as [`run_pair`].
+/// Answers of the multi-instance network path: heatmap peaks at or above the network path's
+/// old default `min_score`.
+const NETWORK_MIN_SCORE: f32 = 0.5;
+
+/// The classical baseline on one pair (refined inside): its poses and time.
 fn run_ncc(
     pair: &SyntheticPair,
     options: &MatchOptions,
     level: Level,
     refine: bool,
     multi_instance: bool,
-) -> (Vec<Pose>, f64, Vec<Pose>, f64) {
+) -> (Vec<Pose>, f64) {
     let start = Instant::now();
     let (lo, hi) = level.scale_range();
     let ncc_options = MatchOptions {
         refine,
         // Single pairs always hold the object: take the best candidate whatever its score.
-        min_score: if multi_instance { 0.5 } else { -1.0 },
+        min_score: Some(if multi_instance {
+            options.effective_min_score()
+        } else {
+            -1.0
+        }),
         scale_range: (hi > lo).then_some(crate::matcher::ScaleRange { min: lo, max: hi }),
         ..options.clone()
     };
@@ -220,17 +265,12 @@ fn run_ncc(
         &GrayImage32::from_rgb(&pair.search),
         &ncc_options,
     );
-    (
-        poses.clone(),
-        start.elapsed().as_secs_f64() * 1e3,
-        poses,
-        0.0,
-    )
+    (poses, start.elapsed().as_secs_f64() * 1e3)
 }
 
-/// How many of the network's successes refinement lost, and how many failures it turned into
+/// How many of the network's successes another path lost, and how many failures it turned into
 /// successes (IoU >= 0.5), pair by pair.
-fn refinement_changes(
+fn path_changes(
     coarse: &[(Option<PairError>, f64)],
     refined: &[(Option<PairError>, f64)],
 ) -> (usize, usize) {
@@ -273,10 +313,14 @@ pub(super) fn summary_table(rows: &[(&str, Summary)]) -> String {
     lines.join("\n")
 }
 
+/// Lost/gained successes of the refined and of the verified path against the network's.
+type PathChanges = ((usize, usize), (usize, usize));
+
 fn print_table(
     label: &str,
     rows: &[(&str, Summary)],
-    refinement_changes: Option<(usize, usize)>,
+    changes: Option<PathChanges>,
+    calibration: Option<&Calibration>,
     as_json: bool,
 ) {
     if as_json {
@@ -284,56 +328,120 @@ fn print_table(
             .iter()
             .map(|(name, s)| json!({"method": name, "summary": s}))
             .collect();
-        let changes =
-            refinement_changes.map(|(lost, gained)| json!({"lost": lost, "gained": gained}));
+        let changes = changes.map(|((rl, rg), (vl, vg))| {
+            json!({"refined": {"lost": rl, "gained": rg}, "verified": {"lost": vl, "gained": vg}})
+        });
         println!(
             "{}",
-            json!({"set": label, "rows": rows, "refinement": changes})
+            json!({"set": label, "rows": rows, "changes": changes, "calibration": calibration})
         );
         return;
     }
     println!("pairs: {label}");
     println!("{}", summary_table(rows));
     println!("(errors over successful pairs, IoU >= 0.5; mIoU and Succ over all pairs)");
-    if let Some((lost, gained)) = refinement_changes {
+    if let Some(((rl, rg), (vl, vg))) = changes {
         println!(
-            "refinement lost {lost} of the network's successes and turned {gained} failures into successes"
+            "against the network's top-1: refinement lost {rl} successes and gained {rg}; verification lost {vl} and gained {vg}"
         );
+    }
+    if let Some(c) = calibration {
+        println!("{}", c.table());
     }
 }
 
 fn print_detection(
     label: &str,
-    coarse: &DetectionCounts,
-    refined: Option<&DetectionCounts>,
+    rows: &[(&str, &DetectionCounts)],
+    calibration: Option<&Calibration>,
     as_json: bool,
 ) {
     if as_json {
+        let rows: Vec<_> = rows
+            .iter()
+            .map(|(name, c)| json!({"method": name, "counts": c, "precision": c.precision(), "recall": c.recall()}))
+            .collect();
         println!(
             "{}",
-            json!({"set": label, "coarse": coarse, "refined": refined})
+            json!({"set": label, "rows": rows, "calibration": calibration})
         );
         return;
     }
     println!("multi-instance: {label}");
     println!(
-        "| {:<22} | {:>9} | {:>7} | {:>7} | {:>6} |",
-        "method", "precision", "recall", "objects", "found"
+        "| {:<24} | {:>9} | {:>7} | {:>7} | {:>6} | {:>7} |",
+        "method", "precision", "recall", "objects", "found", "answers"
     );
-    for (name, c) in [
-        ("tdcm (network only)", Some(coarse)),
-        ("tdcm + refinement", refined),
-    ] {
-        if let Some(c) = c {
-            println!(
-                "| {:<22} | {:>9.3} | {:>7.3} | {:>7} | {:>6} |",
-                name,
-                c.precision(),
-                c.recall(),
-                c.objects,
-                c.true_positives
-            );
+    for (name, c) in rows {
+        println!(
+            "| {:<24} | {:>9.3} | {:>7.3} | {:>7} | {:>6} | {:>7} |",
+            name,
+            c.precision(),
+            c.recall(),
+            c.objects,
+            c.true_positives,
+            c.predictions
+        );
+    }
+    if let Some(c) = calibration {
+        println!("{}", c.table());
+    }
+}
+
+/// How often a verified answer is right, by its score: every answer of the verified path
+/// (whatever `min_score`), counted per score band.
+#[derive(Debug, Default, serde::Serialize)]
+struct Calibration {
+    /// Per band of [`Calibration::BANDS`]: answers, and how many of them were right.
+    answers: [usize; 9],
+    right: [usize; 9],
+}
+
+impl Calibration {
+    /// Lower edges of the score bands (the last band ends at 1).
+    const BANDS: [f32; 9] = [0.0, 0.3, 0.4, 0.5, 0.6, 0.7, 0.8, 0.9, 0.95];
+
+    fn add(&mut self, score: f32, right: bool) {
+        let band = Self::BANDS
+            .iter()
+            .rposition(|&edge| score >= edge)
+            .unwrap_or(0);
+        self.answers[band] += 1;
+        self.right[band] += usize::from(right);
+    }
+
+    /// The band table with the share of right answers per band and, cumulatively, among all
+    /// answers at or above the band's lower edge (precision at that `min_score`).
+    fn table(&self) -> String {
+        let mut lines = vec![
+            "score calibration (every verified answer, before min_score):".to_string(),
+            format!(
+                "| {:<11} | {:>7} | {:>7} | {:>10} | {:>16} |",
+                "score", "answers", "right", "share right", "right at >= lower"
+            ),
+        ];
+        for (i, &edge) in Self::BANDS.iter().enumerate() {
+            let upper = Self::BANDS.get(i + 1).copied().unwrap_or(1.0);
+            let (above_answers, above_right): (usize, usize) = (i..Self::BANDS.len())
+                .map(|j| (self.answers[j], self.right[j]))
+                .fold((0, 0), |(a, r), (x, y)| (a + x, r + y));
+            let share = |r: usize, a: usize| {
+                if a == 0 {
+                    "-".to_string()
+                } else {
+                    format!("{:.1}%", 100.0 * r as f32 / a as f32)
+                }
+            };
+            lines.push(format!(
+                "| {:<11} | {:>7} | {:>7} | {:>10} | {:>16} |",
+                format!("{edge:.2}-{upper:.2}"),
+                self.answers[i],
+                self.right[i],
+                share(self.right[i], self.answers[i]),
+                share(above_right, above_answers)
+            ));
         }
+        lines.join("\n")
     }
 }
 

@@ -33,9 +33,18 @@ pub struct MatchArgs {
     /// Report at most this many instances, best first.
     #[arg(long, default_value_t = MatchOptions::default().max_instances)]
     pub max_instances: usize,
-    /// Ignore score-map peaks below this (0..1).
-    #[arg(long, default_value_t = MatchOptions::default().min_score)]
-    pub min_score: f32,
+    /// Report only answers scoring at least this (0..1): the verified similarity of the
+    /// template at the refined pose, or the heatmap value with --no-refine.
+    /// Default 0.8 (0.5 on the heatmap with --no-refine).
+    #[arg(long)]
+    pub min_score: Option<f32>,
+    /// Heatmap value (0..1) from which a network peak is a candidate for verification.
+    #[arg(long, default_value_t = MatchOptions::default().candidate_threshold)]
+    pub candidate_threshold: f32,
+    /// Most candidates verified per network tile; 0 = automatic (3 per --max-instances, at
+    /// least 10).
+    #[arg(long, default_value_t = MatchOptions::default().max_candidates)]
+    pub max_candidates: usize,
     /// Suppress an instance whose rotated box overlaps a better one by more than this IoU.
     #[arg(long, default_value_t = MatchOptions::default().max_overlap)]
     pub max_overlap: f32,
@@ -45,7 +54,8 @@ pub struct MatchArgs {
     /// Expected object scale LO,HI relative to the template (also steers the search).
     #[arg(long, value_parser = parse_scale_range)]
     pub scale_range: Option<ScaleRange>,
-    /// Skip the geometric refinement of each pose.
+    /// Network only: no verification or refinement; scores are heatmap values (faster, finds
+    /// fewer objects, coarser poses).
     #[arg(long)]
     pub no_refine: bool,
     /// Matcher: `tdcm` (the network) or `ncc` (classical exhaustive search, no weights needed;
@@ -83,6 +93,8 @@ impl MatchArgs {
         let options = MatchOptions {
             max_instances: self.max_instances,
             min_score: self.min_score,
+            candidate_threshold: self.candidate_threshold,
+            max_candidates: self.max_candidates,
             max_overlap: self.max_overlap,
             angle_range: self.angle_range,
             scale_range: self.scale_range,

@@ -7,7 +7,8 @@ use std::time::Instant;
 use serde::Serialize;
 
 use crate::geometry::{Pose, angle_distance_deg, rotated_iou};
-use crate::matcher::{MatchError, MatchOptions, Matcher};
+use crate::matcher::candidates::{answer, select};
+use crate::matcher::{MatchError, MatchJob, MatchOptions, Matcher, Proposal};
 use crate::refine::{GrayImage32, refine_pose};
 use crate::synth::SyntheticPair;
 
@@ -53,66 +54,141 @@ pub struct Summary {
     pub ms_per_pair: f64,
 }
 
-/// One pair through the network: its poses and time, then the refined poses and the
-/// refinement's time (the same poses and 0 ms when `refine` is off).
+/// One pair (or multi-instance scene) through the three paths `posematch eval` compares, from
+/// one network pass: each path's answers and its time per pair (template encoding and the
+/// network included in each).
 pub struct PairRun {
-    pub coarse: Vec<Pose>,
-    pub coarse_ms: f64,
+    /// The network's peaks as they come (heatmap scores, no refinement).
+    pub network: Vec<Pose>,
+    pub network_ms: f64,
+    /// The same poses refined one by one (the path before verification; empty unless asked).
     pub refined: Vec<Pose>,
-    pub refine_ms: f64,
+    pub refined_ms: f64,
+    /// Verified candidates (the default path): every answer whatever its score; apply
+    /// `min_score` to them (it cuts a suffix, so this equals running with it).
+    pub verified: Vec<Pose>,
+    pub verified_ms: f64,
 }
 
-/// Matches one generated pair with `options` (whose own `refine` should be off: refinement is
-/// timed separately here).
+/// Runs one generated pair. `options` are the verified path's (refinement on); the network path
+/// keeps its peaks at or above `network_min_score` (heatmap); `refine_network` adds the refined
+/// row.
 pub fn match_pair(
     matcher: &Matcher,
     pair: &SyntheticPair,
     options: &MatchOptions,
-    refine: bool,
+    network_min_score: f32,
+    refine_network: bool,
 ) -> Result<PairRun, MatchError> {
     let start = Instant::now();
     let encoded = matcher.encode_template(&pair.template)?;
-    let coarse = matcher.match_one(&encoded, &pair.search, options)?.poses;
-    let coarse_ms = start.elapsed().as_secs_f64() * 1e3;
-    if !refine {
-        return Ok(PairRun {
-            refined: coarse.clone(),
-            coarse,
-            coarse_ms,
-            refine_ms: 0.0,
-        });
-    }
+    // One network pass serves all three paths: enough peaks for either.
+    let budget = options.candidate_budget();
+    let propose_options = MatchOptions {
+        candidate_threshold: options.candidate_threshold.min(network_min_score),
+        max_candidates: budget.max(4 * options.max_instances + 16),
+        refine: true,
+        ..options.clone()
+    };
+    let job = MatchJob {
+        template: &encoded,
+        image: &pair.search,
+        options: &propose_options,
+    };
+    let proposal = matcher
+        .propose(std::slice::from_ref(&job))
+        .pop()
+        .expect("one job in, one proposal out")?;
+    let network_ms = ms_since(start);
+    let (tw, th) = (pair.template.width as f32, pair.template.height as f32);
+    let network_options = MatchOptions {
+        min_score: Some(network_min_score),
+        refine: false,
+        ..options.clone()
+    };
+    let network: Vec<Pose> = select(
+        proposal
+            .candidates
+            .iter()
+            .filter(|p| p.network_score >= network_min_score)
+            .copied()
+            .collect(),
+        &network_options,
+        tw,
+        th,
+    );
     let start = Instant::now();
     let image = GrayImage32::from_rgb(&pair.search);
-    let refined = coarse
-        .iter()
-        .map(|p| refine_pose(&encoded.gray, &image, p))
+    let refined = if refine_network {
+        network
+            .iter()
+            .map(|p| refine_pose(&encoded.gray, &image, p))
+            .collect()
+    } else {
+        Vec::new()
+    };
+    let refined_ms = network_ms + ms_since(start);
+    let start = Instant::now();
+    let verified_options = MatchOptions {
+        min_score: Some(f32::MIN_POSITIVE),
+        ..options.clone()
+    };
+    let candidates = proposal
+        .candidates
+        .into_iter()
+        .filter(|p| p.network_score >= options.candidate_threshold)
+        .take(budget)
         .collect();
+    let verified = answer(
+        &MatchJob {
+            options: &verified_options,
+            ..job
+        },
+        Proposal {
+            candidates,
+            timings: proposal.timings,
+        },
+    )
+    .poses;
     Ok(PairRun {
-        coarse,
-        coarse_ms,
+        network,
+        network_ms,
         refined,
-        refine_ms: start.elapsed().as_secs_f64() * 1e3,
+        refined_ms,
+        verified,
+        verified_ms: network_ms + ms_since(start),
     })
 }
 
-/// The paper's table rows for single-instance pairs: the network alone and with refinement.
+fn ms_since(start: Instant) -> f64 {
+    start.elapsed().as_secs_f64() * 1e3
+}
+
+/// The paper's table rows for single-instance pairs: the network's best peak alone and
+/// refined (how the network itself is doing; used while training).
 pub fn evaluate_pairs(
     matcher: &Matcher,
     pairs: &[SyntheticPair],
-    options: &MatchOptions,
 ) -> Result<(Summary, Summary), MatchError> {
-    let (mut coarse, mut refined) = (Vec::new(), Vec::new());
+    let options = MatchOptions {
+        max_instances: 1,
+        ..MatchOptions::default()
+    };
+    let (mut network, mut refined) = (Vec::new(), Vec::new());
     for pair in pairs {
-        let run = match_pair(matcher, pair, options, true)?;
+        let run = match_pair(matcher, pair, &options, ANY_PEAK, true)?;
         let truth = &pair.truth[0];
         let (tw, th) = (pair.template.width as f32, pair.template.height as f32);
         let error = |poses: &[Pose]| poses.first().map(|p| pair_error(p, truth, tw, th));
-        coarse.push((error(&run.coarse), run.coarse_ms));
-        refined.push((error(&run.refined), run.coarse_ms + run.refine_ms));
+        network.push((error(&run.network), run.network_ms));
+        refined.push((error(&run.refined), run.refined_ms));
     }
-    Ok((summarise(&coarse), summarise(&refined)))
+    Ok((summarise(&network), summarise(&refined)))
 }
+
+/// Heatmap threshold under which the network's best peak is still taken as its answer on
+/// single-instance pairs (they always hold the object, as in the paper and the official decode).
+pub const ANY_PEAK: f32 = 0.01;
 
 /// Aggregates per-pair results: `None` means nothing was found.
 pub fn summarise(results: &[(Option<PairError>, f64)]) -> Summary {
@@ -162,6 +238,16 @@ impl DetectionCounts {
 
 /// Greedy matching: pairs (prediction, object) by descending IoU, each used once, IoU ≥ 0.5.
 pub fn match_detections(predicted: &[Pose], truth: &[Pose], tw: f32, th: f32) -> DetectionCounts {
+    let matched = matched_predictions(predicted, truth, tw, th);
+    DetectionCounts {
+        true_positives: matched.iter().filter(|&&m| m).count(),
+        predictions: predicted.len(),
+        objects: truth.len(),
+    }
+}
+
+/// Per prediction, whether the greedy matching of [`match_detections`] pairs it with an object.
+pub fn matched_predictions(predicted: &[Pose], truth: &[Pose], tw: f32, th: f32) -> Vec<bool> {
     let mut candidates = Vec::new();
     for (i, p) in predicted.iter().enumerate() {
         for (j, t) in truth.iter().enumerate() {
@@ -173,19 +259,13 @@ pub fn match_detections(predicted: &[Pose], truth: &[Pose], tw: f32, th: f32) ->
     }
     candidates.sort_by(|a, b| b.0.total_cmp(&a.0));
     let (mut used_p, mut used_t) = (vec![false; predicted.len()], vec![false; truth.len()]);
-    let mut true_positives = 0;
     for (_, i, j) in candidates {
         if !used_p[i] && !used_t[j] {
             used_p[i] = true;
             used_t[j] = true;
-            true_positives += 1;
         }
     }
-    DetectionCounts {
-        true_positives,
-        predictions: predicted.len(),
-        objects: truth.len(),
-    }
+    used_p
 }
 
 #[cfg(test)]
@@ -200,6 +280,7 @@ mod tests {
             scale_x: sx,
             scale_y: sy,
             score: 1.0,
+            network_score: 0.0,
         }
     }
 

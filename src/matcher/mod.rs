@@ -2,6 +2,7 @@
 //! the network (see [`plan`]), runs the network on batches of same-sized pieces, decodes peaks
 //! (see [`decode`]) and maps them back into the public pose convention.
 
+pub mod candidates;
 pub mod decode;
 pub mod ncc;
 pub mod options;
@@ -12,10 +13,10 @@ use std::time::Instant;
 
 use burn::prelude::*;
 
-use crate::geometry::{Pose, rotated_iou};
+use crate::geometry::Pose;
 use crate::imaging::{InputConvention, RgbImage32, resize_rgb, to_network_input};
 use crate::model::{TEMPLATE_GRID, Tdcm};
-use crate::refine::{GrayImage32, refine_pose};
+use crate::refine::GrayImage32;
 use decode::{MapPlanes, decode_peak, find_peaks};
 pub use options::{AngleRange, MatchOptions, ScaleRange};
 use plan::{MAX_NETWORK_PIXELS, MIN_INPUT_SIDE, ScalePass, Tile};
@@ -81,6 +82,9 @@ pub struct MatchTimings {
     pub prepare_ms: f64,
     pub network_ms: f64,
     pub decode_ms: f64,
+    /// Screening every candidate (0 without refinement).
+    pub screen_ms: f64,
+    /// Refining and scoring the candidates that survived the screen.
     pub refine_ms: f64,
 }
 
@@ -88,6 +92,17 @@ pub struct MatchTimings {
 #[derive(Debug, Clone)]
 pub struct MatchOutcome {
     pub poses: Vec<Pose>,
+    pub timings: MatchTimings,
+}
+
+/// The network's candidates for one job, before verification.
+#[derive(Debug, Clone, Default)]
+pub struct Proposal {
+    /// Network poses in image coordinates (`score` = `network_score` = heatmap value), best
+    /// first: every peak at or above the candidate threshold (`min_score` without refinement),
+    /// up to the budget per tile.
+    pub candidates: Vec<Pose>,
+    /// Time so far (prepare, network, decode).
     pub timings: MatchTimings,
 }
 
@@ -174,24 +189,29 @@ impl Matcher {
 
     /// Matches several independent jobs, batching same-sized network pieces together.
     pub fn match_many(&self, jobs: &[MatchJob]) -> Vec<Result<MatchOutcome, MatchError>> {
+        self.propose(jobs)
+            .into_iter()
+            .zip(jobs)
+            .map(|(proposal, job)| proposal.map(|p| candidates::answer(job, p)))
+            .collect()
+    }
+
+    /// The network's half of [`Matcher::match_many`]: every job's candidates (network poses in
+    /// image coordinates, best heatmap value first), before verification and selection.
+    pub fn propose(&self, jobs: &[MatchJob]) -> Vec<Result<Proposal, MatchError>> {
         let start = Instant::now();
-        let mut results: Vec<Result<MatchOutcome, MatchError>> = Vec::with_capacity(jobs.len());
+        let mut results: Vec<Result<Proposal, MatchError>> = Vec::with_capacity(jobs.len());
         let mut pieces = Vec::new();
         for (index, job) in jobs.iter().enumerate() {
             match prepare(index, job, self.max_whole_pixels) {
                 Ok(job_pieces) => {
                     pieces.extend(job_pieces);
-                    results.push(Ok(MatchOutcome {
-                        poses: Vec::new(),
-                        timings: MatchTimings::default(),
-                    }));
+                    results.push(Ok(Proposal::default()));
                 }
                 Err(e) => results.push(Err(e)),
             }
         }
         let prepare_ms = ms_since(start);
-        // Candidate poses per job, in original image coordinates.
-        let mut candidates: Vec<Vec<Pose>> = vec![Vec::new(); jobs.len()];
         let (mut network_ms, mut decode_ms) = (0.0, 0.0);
         // Same-sized pieces share a forward pass.
         pieces.sort_by_key(|p| (p.input.width, p.input.height));
@@ -207,46 +227,25 @@ impl Matcher {
                 network_ms += ms_since(t);
                 let t = Instant::now();
                 for (piece, maps) in batch.iter().zip(&planes) {
-                    let job = &jobs[piece.job];
-                    candidates[piece.job].extend(decode_piece(piece, maps, job));
+                    if let Ok(proposal) = &mut results[piece.job] {
+                        proposal
+                            .candidates
+                            .extend(decode_piece(piece, maps, &jobs[piece.job]));
+                    }
                 }
                 decode_ms += ms_since(t);
             }
         }
-        let t = Instant::now();
-        for (index, result) in results.iter_mut().enumerate() {
-            if let Ok(outcome) = result {
-                let job = &jobs[index];
-                outcome.poses = select(
-                    std::mem::take(&mut candidates[index]),
-                    job.options,
-                    job.template.width as f32,
-                    job.template.height as f32,
-                );
-            }
-        }
-        decode_ms += ms_since(t);
-        let t = Instant::now();
-        for (index, result) in results.iter_mut().enumerate() {
-            let job = &jobs[index];
-            if let Ok(outcome) = result
-                && job.options.refine
-                && !outcome.poses.is_empty()
-            {
-                let image = GrayImage32::from_rgb(job.image);
-                for pose in &mut outcome.poses {
-                    *pose = refine_pose(&job.template.gray, &image, pose);
-                }
-            }
-        }
-        let refine_ms = ms_since(t);
         let count = results.iter().filter(|r| r.is_ok()).count().max(1) as f64;
-        for outcome in results.iter_mut().flatten() {
-            outcome.timings = MatchTimings {
+        for proposal in results.iter_mut().flatten() {
+            proposal
+                .candidates
+                .sort_by(|a, b| b.network_score.total_cmp(&a.network_score));
+            proposal.timings = MatchTimings {
                 prepare_ms: prepare_ms / count,
                 network_ms: network_ms / count,
                 decode_ms: decode_ms / count,
-                refine_ms: refine_ms / count,
+                ..MatchTimings::default()
             };
         }
         results
@@ -407,11 +406,21 @@ fn decode_piece(piece: &Piece, maps: &[f32], job: &MatchJob) -> Vec<Pose> {
         scale_x: &maps[3 * n..4 * n],
         scale_y: &maps[4 * n..5 * n],
     };
-    let limit = 4 * job.options.max_instances + 16;
+    // With verification every peak above the low candidate threshold is worth a look (up to
+    // the budget); without it the heatmap value is the answer's score.
+    let options = job.options;
+    let (threshold, limit) = if options.refine {
+        (options.candidate_threshold, options.candidate_budget())
+    } else {
+        (
+            options.effective_min_score(),
+            4 * options.max_instances + 16,
+        )
+    };
     let pass = piece.pass;
     let tile = piece.tile;
     let grid = TEMPLATE_GRID as f32;
-    find_peaks(&planes, job.options.min_score, limit)
+    find_peaks(&planes, threshold, limit)
         .into_iter()
         .filter_map(|(row, col)| {
             let (gx, gy) = (tile.x0 + col, tile.y0 + row);
@@ -428,33 +437,9 @@ fn decode_piece(piece: &Piece, maps: &[f32], job: &MatchJob) -> Vec<Pose> {
                     scale_x: p.scale_x * grid / (pass.factor_x * job.template.width as f32),
                     scale_y: p.scale_y * grid / (pass.factor_y * job.template.height as f32),
                     score: p.score,
+                    network_score: p.score,
                 }
             })
         })
         .collect()
-}
-
-/// Range filters, rotated-box non-maximum suppression, best first, at most `max_instances`.
-fn select(mut candidates: Vec<Pose>, options: &MatchOptions, tw: f32, th: f32) -> Vec<Pose> {
-    candidates.retain(|p| {
-        options.angle_range.is_none_or(|r| r.contains(p.angle_deg))
-            && options
-                .scale_range
-                .is_none_or(|r| r.contains(p.scale_x) && r.contains(p.scale_y))
-    });
-    candidates.sort_by(|a, b| b.score.total_cmp(&a.score));
-    let mut kept: Vec<(Pose, [(f32, f32); 4])> = Vec::new();
-    for pose in candidates {
-        if kept.len() == options.max_instances {
-            break;
-        }
-        let corners = pose.corners(tw, th);
-        if kept
-            .iter()
-            .all(|(_, other)| rotated_iou(&corners, other) <= options.max_overlap)
-        {
-            kept.push((pose, corners));
-        }
-    }
-    kept.into_iter().map(|(p, _)| p).collect()
 }

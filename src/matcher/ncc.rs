@@ -9,35 +9,11 @@
 
 use rayon::prelude::*;
 
-use crate::geometry::{Pose, rotated_iou};
-use crate::refine::{GrayImage32, TemplatePoints, refine_pose};
+use crate::geometry::Pose;
+use crate::refine::{GrayImage32, Screened, TemplatePoints, Verifier};
 
+use super::candidates::select;
 use super::options::MatchOptions;
-
-/// Halves an image (2x2 box filter).
-fn downsample(image: &GrayImage32) -> GrayImage32 {
-    let (w, h) = ((image.width / 2).max(1), (image.height / 2).max(1));
-    let mut values = Vec::with_capacity(w * h);
-    for y in 0..h {
-        for x in 0..w {
-            let at = |xx: usize, yy: usize| {
-                image.values[yy.min(image.height - 1) * image.width + xx.min(image.width - 1)]
-            };
-            values.push(
-                (at(2 * x, 2 * y)
-                    + at(2 * x + 1, 2 * y)
-                    + at(2 * x, 2 * y + 1)
-                    + at(2 * x + 1, 2 * y + 1))
-                    / 4.0,
-            );
-        }
-    }
-    GrayImage32 {
-        width: w,
-        height: h,
-        values,
-    }
-}
 
 /// Finds the template in the image; poses in the public convention, best first.
 pub fn ncc_match(template: &GrayImage32, image: &GrayImage32, options: &MatchOptions) -> Vec<Pose> {
@@ -48,8 +24,8 @@ pub fn ncc_match(template: &GrayImage32, image: &GrayImage32, options: &MatchOpt
     while level_template.width.min(level_template.height) >= 32
         && level_image.width.min(level_image.height) >= 64
     {
-        level_template = downsample(&level_template);
-        level_image = downsample(&level_image);
+        level_template = level_template.downsample();
+        level_image = level_image.downsample();
         factor *= 2.0;
     }
     let points = TemplatePoints::new(&level_template, 12);
@@ -84,6 +60,7 @@ pub fn ncc_match(template: &GrayImage32, image: &GrayImage32, options: &MatchOpt
             scale_x: 1.0,
             scale_y: 1.0,
             score: 0.0,
+            network_score: 0.0,
         },
     );
     // One best-score map per angle, in parallel, then the best over angles.
@@ -102,6 +79,7 @@ pub fn ncc_match(template: &GrayImage32, image: &GrayImage32, options: &MatchOpt
                                 scale_x,
                                 scale_y,
                                 score: 0.0,
+                                network_score: 0.0,
                             };
                             let s = points.score(&level_image, &pose);
                             let cell = &mut best[gy * gw + gx];
@@ -137,36 +115,45 @@ pub fn ncc_match(template: &GrayImage32, image: &GrayImage32, options: &MatchOpt
     }
     peaks.sort_by(|a, b| b.0.total_cmp(&a.0));
     peaks.truncate(4 * options.max_instances + 4);
-    let (tw, th) = (template.width as f32, template.height as f32);
-    let mut out: Vec<Pose> = Vec::new();
-    for (score, coarse) in peaks {
-        // Back to full resolution: pixel centres scale as (x + 0.5)·f − 0.5.
-        let initial = Pose {
-            x: (coarse.x + 0.5) * factor - 0.5,
-            y: (coarse.y + 0.5) * factor - 0.5,
-            score: score.clamp(0.0, 1.0),
-            ..coarse
-        };
-        let pose = if options.refine {
-            refine_pose(template, image, &initial)
-        } else {
-            initial
-        };
-        if pose.score < options.min_score {
-            continue;
-        }
-        let corners = pose.corners(tw, th);
-        if out
-            .iter()
-            .all(|p| rotated_iou(&p.corners(tw, th), &corners) <= options.max_overlap)
-        {
-            out.push(pose);
-        }
-        if out.len() == options.max_instances {
-            break;
-        }
-    }
-    out
+    let verifier = Verifier::new(template, image, (lo, hi), |angle| {
+        options
+            .angle_range
+            .is_none_or(|r| r.contains_within(angle, 5.0))
+    });
+    let poses: Vec<Pose> = peaks
+        .into_par_iter()
+        .map(|(score, coarse)| {
+            // Back to full resolution: pixel centres scale as (x + 0.5)·f − 0.5.
+            let initial = Pose {
+                x: (coarse.x + 0.5) * factor - 0.5,
+                y: (coarse.y + 0.5) * factor - 0.5,
+                score: score.clamp(0.0, 1.0),
+                ..coarse
+            };
+            if !options.refine {
+                return initial; // scored by the coarse level's sparse ZNCC
+            }
+            // Refined, the score is the similarity at the refined pose, as for the network's
+            // answers.
+            let verified = verifier.confirm(
+                &Screened {
+                    pose: initial,
+                    score,
+                },
+                &initial,
+            );
+            Pose {
+                score: verified.score,
+                ..verified.pose
+            }
+        })
+        .collect();
+    select(
+        poses,
+        options,
+        template.width as f32,
+        template.height as f32,
+    )
 }
 
 #[cfg(test)]
@@ -194,6 +181,7 @@ mod tests {
             scale_x: 1.0,
             scale_y: 1.0,
             score: 1.0,
+            network_score: 0.0,
         };
         let values = (0..24 * 24)
             .map(|i| {

@@ -33,6 +33,15 @@ impl AngleRange {
         offset <= self.extent_deg + 1e-4
     }
 
+    /// Whether `angle_deg` lies in the range widened by `margin_deg` on both sides.
+    pub fn contains_within(&self, angle_deg: f32, margin_deg: f32) -> bool {
+        if self.extent_deg + 2.0 * margin_deg >= 360.0 {
+            return true;
+        }
+        let offset = (angle_deg - self.start_deg + margin_deg).rem_euclid(360.0);
+        offset <= self.extent_deg + 2.0 * margin_deg + 1e-4
+    }
+
     /// The middle of the range in (−180, 180].
     pub fn centre_deg(&self) -> f32 {
         wrap_angle_deg(self.start_deg + self.extent_deg / 2.0)
@@ -76,26 +85,55 @@ impl ScaleRange {
 pub struct MatchOptions {
     /// At most this many poses, best first.
     pub max_instances: usize,
-    /// Peaks of the score map below this are not objects.
-    pub min_score: f32,
+    /// Answers scoring below this are not reported. With refinement the score is the verified
+    /// similarity of the template at the refined pose (see [`crate::refine::Verifier`]); with
+    /// `refine` off it is the network's heatmap value. `None`: [`DEFAULT_MIN_SCORE`], or
+    /// [`NETWORK_MIN_SCORE`] without refinement ([`MatchOptions::effective_min_score`]).
+    pub min_score: Option<f32>,
+    /// Peaks of the network's heatmap at or above this are candidates for verification
+    /// (ignored with `refine` off, where `min_score` selects the peaks).
+    pub candidate_threshold: f32,
+    /// Most candidates verified per network tile; 0 means [`MatchOptions::candidate_budget`]'s
+    /// automatic budget.
+    pub max_candidates: usize,
     /// Two answers whose rotated boxes overlap more than this (IoU) are one object.
     pub max_overlap: f32,
     pub angle_range: Option<AngleRange>,
     /// Also steers how the search image is rescaled (see [`crate::matcher`]).
     pub scale_range: Option<ScaleRange>,
-    /// Geometric refinement of each pose (added by the precision work; the coarse network pose
-    /// is returned either way).
+    /// Verify every candidate on the image, refine the survivors and score them by similarity.
+    /// Off: the network's poses and heatmap values as they come (faster, less accurate).
     pub refine: bool,
 }
 
 /// Upper bound on `max_instances`: beyond this a request is almost certainly a mistake.
 pub const MAX_INSTANCES_LIMIT: usize = 1000;
 
+/// Upper bound on `max_candidates` (per tile).
+pub const MAX_CANDIDATES_LIMIT: usize = 4000;
+
+/// Default `min_score` on the verified score: at most about 1 % of the answers on
+/// multi-instance scenes of the tuning photos are not objects (README "What a score means").
+pub const DEFAULT_MIN_SCORE: f32 = 0.8;
+
+/// Default `min_score` on the heatmap value when refinement is off (the network-only path's
+/// threshold before verification existed).
+pub const NETWORK_MIN_SCORE: f32 = 0.5;
+
+/// Default `candidate_threshold` (heatmap value; README "Verified candidates").
+pub const DEFAULT_CANDIDATE_THRESHOLD: f32 = 0.05;
+
+/// Fewest candidates verified per tile by default: a weakly trained network's object is often
+/// among its first few dozen peaks, not first (README "Verified candidates").
+pub const MIN_CANDIDATE_BUDGET: usize = 50;
+
 impl Default for MatchOptions {
     fn default() -> Self {
         Self {
             max_instances: 10,
-            min_score: 0.5,
+            min_score: None,
+            candidate_threshold: DEFAULT_CANDIDATE_THRESHOLD,
+            max_candidates: 0,
             max_overlap: 0.5,
             angle_range: None,
             scale_range: None,
@@ -105,6 +143,24 @@ impl Default for MatchOptions {
 }
 
 impl MatchOptions {
+    /// Most candidates verified per network tile: `max_candidates`, or by default three per
+    /// wanted instance and at least [`MIN_CANDIDATE_BUDGET`].
+    pub fn candidate_budget(&self) -> usize {
+        match self.max_candidates {
+            0 => (3 * self.max_instances).max(MIN_CANDIDATE_BUDGET),
+            n => n,
+        }
+    }
+
+    /// The `min_score` in force: the one given, or the default for the path.
+    pub fn effective_min_score(&self) -> f32 {
+        self.min_score.unwrap_or(if self.refine {
+            DEFAULT_MIN_SCORE
+        } else {
+            NETWORK_MIN_SCORE
+        })
+    }
+
     /// Checks every field; the message says what to change.
     pub fn validate(&self) -> Result<(), String> {
         if self.max_instances == 0 || self.max_instances > MAX_INSTANCES_LIMIT {
@@ -113,10 +169,23 @@ impl MatchOptions {
                 self.max_instances
             ));
         }
-        if !(self.min_score > 0.0 && self.min_score < 1.0) {
+        if let Some(min_score) = self.min_score
+            && !(min_score > 0.0 && min_score < 1.0)
+        {
             return Err(format!(
-                "min_score {} is invalid: use a value in (0, 1)",
-                self.min_score
+                "min_score {min_score} is invalid: use a value in (0, 1)"
+            ));
+        }
+        if !(self.candidate_threshold > 0.0 && self.candidate_threshold < 1.0) {
+            return Err(format!(
+                "candidate_threshold {} is invalid: use a value in (0, 1)",
+                self.candidate_threshold
+            ));
+        }
+        if self.max_candidates > MAX_CANDIDATES_LIMIT {
+            return Err(format!(
+                "max_candidates {} is invalid: use 1..={MAX_CANDIDATES_LIMIT}, or 0 for the automatic budget",
+                self.max_candidates
             ));
         }
         if !(self.max_overlap >= 0.0 && self.max_overlap <= 1.0) {

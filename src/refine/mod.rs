@@ -1,11 +1,14 @@
-//! Geometric refinement of a coarse pose: local search on the image itself, the step that turns
-//! the network's rough answer (a few degrees, ~0.1 in scale) into one usable for alignment.
+//! Geometric refinement and verification of coarse poses: local search on the image itself, the
+//! step that turns the network's rough answer (a few degrees, ~0.1 in scale) into one usable for
+//! alignment, and that tells how well the template really matches there.
 //!
 //! The score of a pose is the zero-mean normalised cross-correlation (ZNCC) between the template
-//! and the image sampled (bilinear) where the pose maps each template pixel. ZNCC rather than
-//! the paper's uncentred cosine similarity: the uncentred score is above 0.9 for almost any
-//! alignment on natural images (reference README), so it cannot rank candidates finely.
+//! and the image sampled (bilinear) where the pose maps each template pixel ([`TemplatePoints`],
+//! the one scorer every stage uses). ZNCC rather than the paper's uncentred cosine similarity:
+//! the uncentred score is above 0.9 for almost any alignment on natural images (reference
+//! README), so it cannot rank candidates finely.
 //!
+//! [`refine_pose`] refines one pose the network is already sure of:
 //! 1. Angle x scales on a sparse grid of template points: ±30° in 3° steps x five factors
 //!    0.7–1.4 per axis; if nothing there scores well, the whole circle in 6° steps (a network
 //!    angle can be far off); then scales ±10 % and the angle ±4° in finer steps.
@@ -18,12 +21,18 @@
 //! The refined pose replaces the initial one only if it scores higher, reaches ZNCC >= 0.6 and
 //! its centre stays within a third of the object's size, so that refinement does not trade an
 //! object the network found for a better-looking neighbour.
-
-use std::cell::Cell;
+//!
+//! [`Verifier`] decides between many candidates of one image (the network proposes, the image
+//! decides): a cheap screen of each candidate first, the same angle x scale search on a
+//! downsampled image, then the fine search and alignment for the candidates that survive, each
+//! ending with its similarity at the refined pose ([`verify`]).
 
 use crate::geometry::{Pose, wrap_angle_deg};
 
 mod align;
+mod verify;
+
+pub use verify::{Screened, Verified, Verifier, chance_similarity};
 
 use crate::imaging::RgbImage32;
 
@@ -53,6 +62,31 @@ impl GrayImage32 {
             width: image.width as usize,
             height: image.height as usize,
             values: image.to_gray(),
+        }
+    }
+
+    /// Half the size (2x2 box filter; an odd last row or column is repeated).
+    pub fn downsample(&self) -> GrayImage32 {
+        let (w, h) = ((self.width / 2).max(1), (self.height / 2).max(1));
+        let at = |x: usize, y: usize| {
+            self.values[y.min(self.height - 1) * self.width + x.min(self.width - 1)]
+        };
+        let mut values = Vec::with_capacity(w * h);
+        for y in 0..h {
+            for x in 0..w {
+                values.push(
+                    (at(2 * x, 2 * y)
+                        + at(2 * x + 1, 2 * y)
+                        + at(2 * x, 2 * y + 1)
+                        + at(2 * x + 1, 2 * y + 1))
+                        / 4.0,
+                );
+            }
+        }
+        GrayImage32 {
+            width: w,
+            height: h,
+            values,
         }
     }
 
@@ -115,6 +149,12 @@ impl TemplatePoints {
         Self { offsets, weights }
     }
 
+    /// The points that measure a pose's final similarity: the whole template (every pixel up to
+    /// 48 a side, a regular subset beyond).
+    pub(crate) fn support(template: &GrayImage32) -> Self {
+        Self::new(template, 48)
+    }
+
     /// ZNCC of the template against the image under `pose`, in [-1, 1].
     pub(crate) fn score(&self, image: &GrayImage32, pose: &Pose) -> f32 {
         let (s, c) = pose.angle_deg.to_radians().sin_cos();
@@ -137,81 +177,157 @@ impl TemplatePoints {
     }
 }
 
-/// Refinement of one pose. `template` is the registered template (grey), `image` the search.
-pub fn refine_pose(template: &GrayImage32, image: &GrayImage32, initial: &Pose) -> Pose {
-    let sparse = TemplatePoints::new(template, 20);
-    let dense = TemplatePoints::new(template, 48);
-    let initial_score = dense.score(image, initial);
-    let mut best = *initial;
+/// A pose and its score under one set of [`TemplatePoints`].
+#[derive(Debug, Clone, Copy)]
+struct Scored {
+    pose: Pose,
+    score: f32,
+}
 
-    // 1. Angle and scales together (the network's scale is its coarsest output, and a wrong
-    //    scale hides the right angle): ±30° in 3° steps x factors 0.7–1.4 on each axis.
-    let best_sparse = Cell::new(sparse.score(image, &best));
-    let try_pose = |candidate: Pose, best: &mut Pose| {
-        let s = sparse.score(image, &candidate);
-        if s > best_sparse.get() {
-            best_sparse.set(s);
-            *best = candidate;
+/// The angle x scales grid searched around a pose at its fixed centre.
+struct AngleScaleGrid {
+    /// Angle step near the start (degrees), searched within ±30°.
+    near_step_deg: f32,
+    /// Scale factors per axis near the start.
+    near_factors: Vec<f32>,
+    /// Angle step over the rest of the circle, searched when nothing near scores
+    /// [`FULL_CIRCLE_BELOW`].
+    far_step_deg: f32,
+    /// Scale factors per axis over the rest of the circle.
+    far_factors: Vec<f32>,
+}
+
+impl AngleScaleGrid {
+    /// The refinement's grid (full-resolution sparse points): 3° near, 6° far.
+    fn refinement() -> Self {
+        Self {
+            near_step_deg: 3.0,
+            near_factors: (0..5).map(|k| 0.7f32 * 2f32.powf(k as f32 / 4.0)).collect(),
+            far_step_deg: 6.0,
+            far_factors: (0..3).map(|k| 0.85f32 * 1.18f32.powi(k)).collect(),
         }
-    };
-    // Every angle offset x every pair of scale factors, around the network's pose.
-    let search = |angle_offsets: &[f32], factors: &[f32], best: &mut Pose| {
-        for &offset in angle_offsets {
-            for &factor_x in factors {
-                for &factor_y in factors {
-                    let candidate = Pose {
-                        angle_deg: initial.angle_deg + offset,
-                        scale_x: initial.scale_x * factor_x,
-                        scale_y: initial.scale_y * factor_y,
-                        ..*initial
-                    };
-                    try_pose(candidate, best);
-                }
-            }
-        }
-    };
-    let near_offsets: Vec<f32> = (-10..=10).map(|k| 3.0 * k as f32).collect();
-    let wide_factors: Vec<f32> = (0..5).map(|k| 0.7f32 * 2f32.powf(k as f32 / 4.0)).collect();
-    search(&near_offsets, &wide_factors, &mut best);
-    // 1b. A poor best means the network's angle may be more than 30° off (a weakly trained
-    //     model, a symmetric-looking part): search the rest of the circle in 6° steps at three
-    //     scale factors per axis, which costs about as much as step 1 and only for such poses.
-    if best_sparse.get() < FULL_CIRCLE_BELOW {
-        let far_offsets: Vec<f32> = (6..55).map(|k| 6.0 * k as f32).collect();
-        let factors: Vec<f32> = (0..3).map(|k| 0.85f32 * 1.18f32.powi(k)).collect();
-        search(&far_offsets, &factors, &mut best);
     }
-    // 2. Scales finer around the best: a 5x5 grid of factors ±10 %.
-    let base = best;
+
+    /// Searches angle x scales around `start` (its centre fixed) for the best score under
+    /// `points`, trying only angles that `allowed` accepts: ±30° first, the rest of the circle
+    /// when nothing there reaches [`FULL_CIRCLE_BELOW`] (a weakly trained network, a
+    /// symmetric-looking part).
+    fn search(
+        &self,
+        points: &TemplatePoints,
+        image: &GrayImage32,
+        start: &Pose,
+        allowed: &dyn Fn(f32) -> bool,
+    ) -> Scored {
+        let mut best = Scored {
+            pose: *start,
+            score: if allowed(wrap_angle_deg(start.angle_deg)) {
+                points.score(image, start)
+            } else {
+                f32::NEG_INFINITY
+            },
+        };
+        let try_offsets =
+            |offsets: &mut dyn Iterator<Item = f32>, factors: &[f32], best: &mut Scored| {
+                for offset in offsets {
+                    let angle_deg = start.angle_deg + offset;
+                    if !allowed(wrap_angle_deg(angle_deg)) {
+                        continue;
+                    }
+                    for &factor_x in factors {
+                        for &factor_y in factors {
+                            let pose = Pose {
+                                angle_deg,
+                                scale_x: start.scale_x * factor_x,
+                                scale_y: start.scale_y * factor_y,
+                                ..*start
+                            };
+                            let score = points.score(image, &pose);
+                            if score > best.score {
+                                *best = Scored { pose, score };
+                            }
+                        }
+                    }
+                }
+            };
+        let near = (30.0 / self.near_step_deg).floor() as i32;
+        try_offsets(
+            &mut (-near..=near).map(|k| k as f32 * self.near_step_deg),
+            &self.near_factors,
+            &mut best,
+        );
+        if best.score < FULL_CIRCLE_BELOW {
+            let first = (near as f32 * self.near_step_deg / self.far_step_deg).floor() as i32 + 1;
+            let last = (360.0 / self.far_step_deg).ceil() as i32 - first;
+            try_offsets(
+                &mut (first..=last).map(|k| k as f32 * self.far_step_deg),
+                &self.far_factors,
+                &mut best,
+            );
+        }
+        if best.score == f32::NEG_INFINITY {
+            // Nothing allowed (cannot happen for a non-empty angle range and the whole circle).
+            best.score = points.score(image, start);
+        }
+        best
+    }
+}
+
+/// Scales ±10 % (5x5 factors), then the angle ±4° in 1° steps, around `best` (centre fixed).
+fn fine_search(
+    points: &TemplatePoints,
+    image: &GrayImage32,
+    mut best: Scored,
+    allowed: &dyn Fn(f32) -> bool,
+) -> Scored {
+    let try_pose = |pose: Pose, best: &mut Scored| {
+        if !allowed(wrap_angle_deg(pose.angle_deg)) {
+            return;
+        }
+        let score = points.score(image, &pose);
+        if score > best.score {
+            *best = Scored { pose, score };
+        }
+    };
+    let base = best.pose;
     for i in -2..=2 {
         for j in -2..=2 {
-            let candidate = Pose {
+            let pose = Pose {
                 scale_x: base.scale_x * (1.0 + 0.05 * i as f32),
                 scale_y: base.scale_y * (1.0 + 0.05 * j as f32),
                 ..base
             };
-            try_pose(candidate, &mut best);
+            try_pose(pose, &mut best);
         }
     }
-    // Angle once more at the new scales, ±4° in 1° steps.
-    let base = best;
+    let base = best.pose;
     for k in -4..=4 {
-        let candidate = Pose {
+        let pose = Pose {
             angle_deg: base.angle_deg + k as f32,
             ..base
         };
-        try_pose(candidate, &mut best);
+        try_pose(pose, &mut best);
     }
-    // 3. All five parameters jointly, coarse to fine (Gauss-Newton on blurred images, see
-    //    `align`), from the grid's best and from the network's own pose; the better one wins.
-    let starts = [best, *initial];
+    best
+}
+
+/// All five parameters jointly, coarse to fine (Gauss–Newton on blurred images, see [`align`]),
+/// from each of `starts`; the pose with the highest ZNCC under `support` wins. `around` is the
+/// pose whose neighbourhood the blurred windows cover (the candidate's).
+fn align_from(
+    template: &GrayImage32,
+    support: &TemplatePoints,
+    image: &GrayImage32,
+    starts: &[Pose],
+    around: &Pose,
+) -> Scored {
     let longest_side = template.width.max(template.height) as f32;
     let largest_scale = starts
         .iter()
         .map(|p| p.scale_x.max(p.scale_y))
         .fold(1.0f32, f32::max);
     let radius = 0.75 * longest_side * largest_scale * 1.5 + 8.0;
-    let mean_scale = (initial.scale_x * initial.scale_y).abs().sqrt().max(0.1);
+    let mean_scale = (around.scale_x * around.scale_y).abs().sqrt().max(0.1);
     let object_side = (template.width * template.height) as f32;
     let blur_factor = (object_side.sqrt() * mean_scale / 36.0).max(1.0);
     let mut sigmas: Vec<f32> = ALIGN_SIGMAS.iter().map(|s| s * blur_factor).collect();
@@ -229,39 +345,67 @@ pub fn refine_pose(template: &GrayImage32, image: &GrayImage32, initial: &Pose) 
             };
             (
                 align::AlignPoints::new(template, sigma / mean_scale, max_side),
-                align::GradientWindow::new(
-                    image,
-                    initial.x,
-                    initial.y,
-                    radius + 3.0 * sigma,
-                    sigma,
-                ),
+                align::GradientWindow::new(image, around.x, around.y, radius + 3.0 * sigma, sigma),
             )
         })
         .collect();
-    let mut best_score = f32::NEG_INFINITY;
+    let mut best = Scored {
+        pose: *around,
+        score: f32::NEG_INFINITY,
+    };
     for start in starts {
-        let mut pose = start;
+        let mut pose = *start;
         for (points, window) in &levels {
             pose = align::align(points, window, &pose, 20);
         }
-        let score = dense.score(image, &pose);
-        if score > best_score {
-            best_score = score;
-            best = pose;
+        let score = support.score(image, &pose);
+        if score > best.score {
+            best = Scored { pose, score };
         }
     }
+    best
+}
+
+/// Whether `pose` stayed near `reference`: within a third of the object's size, so that
+/// refinement does not trade the object a candidate stands for for a better-looking neighbour.
+fn stayed_near(template: &GrayImage32, reference: &Pose, pose: &Pose) -> bool {
+    let side = template.width.min(template.height) as f32;
+    let moved = (pose.x - reference.x).hypot(pose.y - reference.y);
+    moved <= side.max(8.0) * reference.scale_x.min(reference.scale_y) / 3.0
+}
+
+/// Refinement of one pose. `template` is the registered template (grey), `image` the search.
+/// The score is left as it was (the caller's).
+pub fn refine_pose(template: &GrayImage32, image: &GrayImage32, initial: &Pose) -> Pose {
+    let sparse = TemplatePoints::new(template, 20);
+    let support = TemplatePoints::support(template);
+    let initial_score = support.score(image, initial);
+    let any_angle = |_: f32| true;
+    // 1. Angle and scales together (the network's scale is its coarsest output, and a wrong
+    //    scale hides the right angle), then finer steps.
+    let searched = AngleScaleGrid::refinement().search(&sparse, image, initial, &any_angle);
+    let searched = fine_search(&sparse, image, searched, &any_angle);
+    // 2. All five parameters jointly, from the grid's best and from the network's own pose.
+    let best = align_from(
+        template,
+        &support,
+        image,
+        &[searched.pose, *initial],
+        initial,
+    );
     // Keep the network's pose unless the refined one is better, clearly a match (as the paper
     // keeps its estimate when every candidate scores below a threshold), and no jump to a
-    // neighbour: the centre stays within a third of the object's size.
-    let side = template.width.min(template.height) as f32;
-    let moved = (best.x - initial.x).hypot(best.y - initial.y);
-    let reach = side.max(8.0) * initial.scale_x.min(initial.scale_y) / 3.0;
-    if best_score <= initial_score || best_score < MIN_MATCH_SCORE || moved > reach {
+    // neighbour.
+    if best.score <= initial_score
+        || best.score < MIN_MATCH_SCORE
+        || !stayed_near(template, initial, &best.pose)
+    {
         return *initial;
     }
-    best.angle_deg = wrap_angle_deg(best.angle_deg);
-    best
+    Pose {
+        angle_deg: wrap_angle_deg(best.pose.angle_deg),
+        ..best.pose
+    }
 }
 
 #[cfg(test)]
@@ -309,6 +453,7 @@ mod tests {
             scale_x: 1.2,
             scale_y: 0.9,
             score: 1.0,
+            network_score: 0.0,
         };
         let template = cut_template(&image, &truth);
         (image, truth, template)
@@ -341,6 +486,7 @@ mod tests {
             scale_x: 1.1,
             scale_y: 1.0,
             score: 0.8,
+            network_score: 0.0,
         };
         let refined = refine_pose(&template, &image, &rough);
         assert_centre_and_angle(&refined, &truth);
@@ -363,6 +509,7 @@ mod tests {
             scale_x: 1.1,
             scale_y: 1.0,
             score: 0.6,
+            network_score: 0.0,
         };
         let refined = refine_pose(&template, &image, &rough);
         assert_centre_and_angle(&refined, &truth);

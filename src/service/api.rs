@@ -16,11 +16,14 @@ use super::convert::{
 };
 use super::proto::{self, pose_matcher_server::PoseMatcher};
 use crate::engine::{Engine, EngineError, Metrics};
+use crate::matcher::MatchOptions;
 
 pub struct Api {
     engine: Arc<OnceLock<Arc<Engine>>>,
     metrics: Metrics,
     max_image_pixels: u64,
+    /// What a Match request's zero-valued options mean (from the settings).
+    match_defaults: MatchOptions,
 }
 
 impl Api {
@@ -28,11 +31,13 @@ impl Api {
         engine: Arc<OnceLock<Arc<Engine>>>,
         metrics: Metrics,
         max_image_pixels: u64,
+        match_defaults: MatchOptions,
     ) -> Self {
         Self {
             engine,
             metrics,
             max_image_pixels,
+            match_defaults,
         }
     }
 
@@ -109,6 +114,7 @@ async fn run_match(
     received: Instant,
     deadline: Option<Instant>,
     max_pixels: u64,
+    defaults: &MatchOptions,
 ) -> Result<proto::MatchResponse, Status> {
     let work = async {
         if request.template_id.is_empty() {
@@ -116,7 +122,7 @@ async fn run_match(
                 "template_id is empty; give the ID of a registered template".into(),
             ));
         }
-        let (options, roi) = options_from_proto(request.options)?;
+        let (options, roi) = options_from_proto(request.options, defaults)?;
         let image = decode(request.image, "image", max_pixels).await?;
         let (width, height) = (image.width, image.height);
         let decode_ms = received.elapsed().as_secs_f64() * 1e3;
@@ -263,7 +269,15 @@ impl PoseMatcher for Api {
         );
         let result = async {
             let engine = self.engine()?;
-            run_match(&engine, request, received, deadline, self.max_image_pixels).await
+            run_match(
+                &engine,
+                request,
+                received,
+                deadline,
+                self.max_image_pixels,
+                &self.match_defaults,
+            )
+            .await
         }
         .instrument(span.clone())
         .await
@@ -290,6 +304,7 @@ impl PoseMatcher for Api {
             engine: self.engine.clone(),
             metrics,
             max_image_pixels: max_pixels,
+            match_defaults: self.match_defaults.clone(),
         };
         tokio::spawn(async move {
             while let Some(next) = inbound.next().await {
@@ -309,7 +324,8 @@ impl PoseMatcher for Api {
                     batch_size = tracing::field::Empty,
                     poses = tracing::field::Empty,
                 );
-                let result = run_match(&engine, request, received, None, max_pixels)
+                let defaults = &counter.match_defaults;
+                let result = run_match(&engine, request, received, None, max_pixels, defaults)
                     .instrument(span)
                     .await
                     .map_err(|s| {

@@ -105,16 +105,17 @@ fn raw_to_rgb(
     Ok(RgbImage32::new(w, h, values))
 }
 
-/// Options with the proto's defaults for zero values; anything out of range is an error that
-/// names the field.
+/// Options with `defaults` (the service's settings) for zero values; anything out of range is
+/// an error that names the field.
 pub fn options_from_proto(
     options: Option<proto::MatchOptions>,
+    defaults: &MatchOptions,
 ) -> Result<(MatchOptions, Option<Roi>), EngineError> {
     let o = options.unwrap_or_default();
     let invalid = |m: String| Err(EngineError::InvalidArgument(m));
-    let defaults = MatchOptions::default();
     let finite = [
         ("min_score", o.min_score),
+        ("candidate_threshold", o.candidate_threshold),
         ("max_overlap", o.max_overlap),
         ("angle_start_deg", o.angle_start_deg),
         ("angle_extent_deg", o.angle_extent_deg),
@@ -155,12 +156,21 @@ pub fn options_from_proto(
         min_score: if o.min_score == 0.0 {
             defaults.min_score
         } else {
-            o.min_score
+            Some(o.min_score)
         },
         max_overlap: if o.max_overlap == 0.0 {
             defaults.max_overlap
         } else {
             o.max_overlap
+        },
+        candidate_threshold: if o.candidate_threshold == 0.0 {
+            defaults.candidate_threshold
+        } else {
+            o.candidate_threshold
+        },
+        max_candidates: match o.max_candidates {
+            0 => defaults.max_candidates,
+            n => n as usize,
         },
         angle_range,
         scale_range,
@@ -188,6 +198,7 @@ pub fn pose_to_proto(pose: &Pose) -> proto::Pose {
         scale_x: pose.scale_x,
         scale_y: pose.scale_y,
         score: pose.score,
+        network_score: pose.network_score,
     }
 }
 
@@ -288,10 +299,14 @@ mod tests {
 
     #[test]
     fn zero_options_are_defaults_and_absurd_ones_are_refused() {
-        let (o, roi) = options_from_proto(None).unwrap();
+        let (o, roi) = options_from_proto(None, &MatchOptions::default()).unwrap();
         assert_eq!(o, MatchOptions::default());
         assert!(roi.is_none());
-        let bad = |o: proto::MatchOptions| options_from_proto(Some(o)).unwrap_err().to_string();
+        let bad = |o: proto::MatchOptions| {
+            options_from_proto(Some(o), &MatchOptions::default())
+                .unwrap_err()
+                .to_string()
+        };
         assert!(
             bad(proto::MatchOptions {
                 min_score: 1.5,

@@ -109,7 +109,12 @@ impl RunningServer {
             .map_err(|e| ServeError::Setup(e.to_string()))?;
 
         let engine: Arc<OnceLock<Arc<Engine>>> = Arc::new(OnceLock::new());
-        let api = api::Api::new(engine.clone(), metrics.clone(), settings.max_image_pixels);
+        let api = api::Api::new(
+            engine.clone(),
+            metrics.clone(),
+            settings.max_image_pixels,
+            settings.match_defaults(),
+        );
         let pose_matcher = proto::pose_matcher_server::PoseMatcherServer::new(api)
             .max_decoding_message_size(settings.max_message_bytes)
             .max_encoding_message_size(settings.max_message_bytes);

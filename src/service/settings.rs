@@ -6,6 +6,8 @@ use std::path::{Path, PathBuf};
 
 use serde::{Deserialize, Serialize};
 
+use crate::matcher::MatchOptions;
+
 /// Log line format.
 #[derive(Debug, Clone, Copy, PartialEq, Eq, Serialize, Deserialize)]
 #[serde(rename_all = "lowercase")]
@@ -43,6 +45,14 @@ pub struct Settings {
     pub log_format: LogFormat,
     /// Seconds to let in-flight requests finish after SIGTERM/Ctrl-C.
     pub shutdown_grace_seconds: u64,
+    /// Match requests that leave an option at 0 get these: the least score of an answer
+    /// (unset: 0.8 on the verified score, 0.5 on the heatmap with `no_refine`), the heatmap
+    /// value from which a peak is a candidate, and the most candidates verified per tile
+    /// (0 = automatic).
+    #[serde(default)]
+    pub min_score: Option<f32>,
+    pub candidate_threshold: f32,
+    pub max_candidates: usize,
 }
 
 /// The embedded defaults, as a TOML document (also what `deploy/posematch.toml` starts from).
@@ -59,6 +69,8 @@ max_image_pixels = 40000000
 max_message_bytes = 67108864
 log_format = "text"
 shutdown_grace_seconds = 30
+candidate_threshold = 0.05
+max_candidates = 0
 "#;
 
 /// Flag values that override the file and environment (`None` = not given).
@@ -127,8 +139,21 @@ impl Settings {
         Ok(settings)
     }
 
+    /// The options a Match request's zero values stand for.
+    pub fn match_defaults(&self) -> MatchOptions {
+        MatchOptions {
+            min_score: self.min_score,
+            candidate_threshold: self.candidate_threshold,
+            max_candidates: self.max_candidates,
+            ..MatchOptions::default()
+        }
+    }
+
     fn validate(&self) -> Result<(), SettingsError> {
         let bad = |what: String| Err(SettingsError(what));
+        if let Err(message) = self.match_defaults().validate() {
+            return bad(message.replacen(' ', " = ", 1));
+        }
         if self.listen.parse::<std::net::SocketAddr>().is_err() {
             return bad(format!(
                 "listen = {:?} is not an address; use HOST:PORT, e.g. 0.0.0.0:50051",
@@ -244,6 +269,9 @@ mod tests {
         assert!(err(&[("POSEMATCH__LISTEN", "nowhere")]).contains("listen"));
         assert!(err(&[("POSEMATCH__QUEUE_SIZE", "many")]).contains("queue_size"));
         assert!(err(&[("POSEMATCH__LOG_FORMAT", "xml")]).contains("log_format"));
+        assert!(err(&[("POSEMATCH__MIN_SCORE", "1.5")]).contains("min_score = 1.5"));
+        assert!(err(&[("POSEMATCH__CANDIDATE_THRESHOLD", "0")]).contains("candidate_threshold"));
+        assert!(err(&[("POSEMATCH__MAX_CANDIDATES", "99999")]).contains("max_candidates"));
         let missing = Settings::load(
             Some(Path::new("/no/such/posematch.toml")),
             env(&[]),

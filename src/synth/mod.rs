@@ -278,6 +278,7 @@ pub fn make_pair(
             scale_x: bw as f32 / tw as f32,
             scale_y: bh as f32 / th as f32,
             score: 1.0,
+            network_score: 0.0,
         };
         let Some(search) = warp_search_window(photo, spec.search_side, (cx, cy), &truth) else {
             continue; // the window would show blank border
@@ -374,6 +375,7 @@ pub fn make_multi_instance(
                 scale_x: sx,
                 scale_y: sy,
                 score: 1.0,
+                network_score: 0.0,
             };
             sampler::paste(&mut search, &template, &pose);
             truth.push(pose);

@@ -106,6 +106,7 @@ mod tests {
             scale_x,
             scale_y,
             score: 1.0,
+            network_score: 0.0,
         }
     }
 

@@ -133,6 +133,7 @@ mod tests {
             scale_x: 1.2,
             scale_y: 0.9,
             score: 1.0,
+            network_score: 0.0,
         };
         let labels = LabelMaps::render(40, 36, &[truth], 36.0, 36.0);
         let tensors = LabelTensors::stack(std::slice::from_ref(&labels), &device);

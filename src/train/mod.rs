@@ -32,7 +32,7 @@ use serde::{Deserialize, Serialize};
 
 use crate::evaluation::{Summary, evaluate_pairs};
 use crate::imaging::{InputConvention, RgbImage32, to_network_input};
-use crate::matcher::{MatchOptions, Matcher};
+use crate::matcher::Matcher;
 use crate::model::{
     TEMPLATE_GRID, Tdcm, TdcmConfig, load_weights, load_weights_from_bytes, save_weights,
 };
@@ -445,13 +445,7 @@ fn validate(
     pairs: &[SyntheticPair],
 ) -> Result<(Summary, Summary), TrainError> {
     let matcher = Matcher::new(model.valid(), device.clone(), InputConvention::ImagenetRgb);
-    let options = MatchOptions {
-        max_instances: 1,
-        min_score: 0.01,
-        refine: false,
-        ..MatchOptions::default()
-    };
-    Ok(evaluate_pairs(&matcher, pairs, &options)?)
+    Ok(evaluate_pairs(&matcher, pairs)?)
 }
 
 fn save_checkpoint(

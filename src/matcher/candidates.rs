@@ -1,0 +1,377 @@
+//! From the network's candidates to the answers: verification on the image, then
+//! non-maximum suppression and the caller's filters, in this order:
+//!
+//! candidates → screen → confirm the survivors (refined pose, similarity) → angle/scale range
+//! filters on the refined poses → rotated-box NMS on the refined poses (candidates that refine
+//! onto the same object collapse) → `min_score` → `max_instances`, best first.
+//!
+//! Without refinement ([`MatchOptions::refine`] off) the network's poses go straight to the
+//! filters, NMS and `min_score` on the heatmap value.
+
+use std::time::Instant;
+
+use rayon::prelude::*;
+
+use super::options::MatchOptions;
+use super::{MatchJob, MatchOutcome, Proposal};
+use crate::geometry::{Pose, rotated_iou};
+use crate::refine::{GrayImage32, Screened, Verifier};
+
+/// Screen ZNCC below which a candidate is not worth confirming: a true object at the right
+/// angle scores far above it even with its centre a few pixels off (README "Verified
+/// candidates").
+pub const SCREEN_MIN: f32 = 0.3;
+
+/// Survivors of the screen confirmed beyond `max_instances` (near-misses of the screen ranking).
+pub const SPARE_SURVIVORS: usize = 1;
+
+/// Degrees by which the screen and confirmation look beyond the caller's angle range (the
+/// final filter is exact), so that an object at the edge of the range is not missed.
+const ANGLE_MARGIN_DEG: f32 = 5.0;
+
+/// Turns a job's candidates into its answers: verified (refinement on) or as the network
+/// gave them.
+pub fn answer(job: &MatchJob, proposal: Proposal) -> MatchOutcome {
+    let size = (job.template.width as f32, job.template.height as f32);
+    let mut timings = proposal.timings;
+    let start = Instant::now();
+    let poses = if job.options.refine && !proposal.candidates.is_empty() {
+        let image = GrayImage32::from_rgb(job.image);
+        let verified = verify_candidates(
+            &job.template.gray,
+            size,
+            &image,
+            proposal.candidates,
+            job.options,
+        );
+        timings.refine_ms = verified.confirm_ms;
+        timings.screen_ms = start.elapsed().as_secs_f64() * 1e3 - verified.confirm_ms;
+        verified.poses
+    } else {
+        let poses = select(proposal.candidates, job.options, size.0, size.1);
+        timings.decode_ms += start.elapsed().as_secs_f64() * 1e3;
+        poses
+    };
+    MatchOutcome { poses, timings }
+}
+
+/// The answers of one job and where the verification's time went.
+pub struct Verification {
+    pub poses: Vec<Pose>,
+    pub screen_ms: f64,
+    pub confirm_ms: f64,
+}
+
+/// Verifies `candidates` (network poses in image coordinates, `network_score` set) of a
+/// `template` in `image`, then selects the answers.
+pub fn verify_candidates(
+    template: &GrayImage32,
+    (tw, th): (f32, f32),
+    image: &GrayImage32,
+    candidates: Vec<Pose>,
+    options: &MatchOptions,
+) -> Verification {
+    let start = Instant::now();
+    let scales = options.scale_range.map_or((1.0, 1.0), |r| (r.min, r.max));
+    let angle_range = options.angle_range;
+    let verifier = Verifier::new(template, image, scales, move |angle| {
+        angle_range.is_none_or(|r| r.contains_within(angle, ANGLE_MARGIN_DEG))
+    });
+    let mut screened: Vec<(Pose, Screened)> = candidates
+        .into_par_iter()
+        .map(|candidate| (candidate, verifier.screen(&candidate)))
+        .collect();
+    // Best screen first; near-duplicates (the same object seen by two peaks) need no second
+    // confirmation.
+    screened.sort_by(|a, b| b.1.score.total_cmp(&a.1.score));
+    let budget = options.max_instances + SPARE_SURVIVORS;
+    let mut survivors: Vec<(Pose, Screened, [(f32, f32); 4])> = Vec::new();
+    for (candidate, screen) in screened {
+        if survivors.len() == budget || screen.score < SCREEN_MIN {
+            break;
+        }
+        let corners = screen.pose.corners(tw, th);
+        if survivors
+            .iter()
+            .all(|(_, _, other)| rotated_iou(&corners, other) <= options.max_overlap)
+        {
+            survivors.push((candidate, screen, corners));
+        }
+    }
+    let screen_ms = start.elapsed().as_secs_f64() * 1e3;
+    let start = Instant::now();
+    let confirmed: Vec<Pose> = survivors
+        .into_par_iter()
+        .map(|(candidate, screen, _)| {
+            let verified = verifier.confirm(&screen, &candidate);
+            Pose {
+                score: verified.score,
+                network_score: candidate.network_score,
+                ..verified.pose
+            }
+        })
+        .collect();
+    let poses = select(confirmed, options, tw, th);
+    Verification {
+        poses,
+        screen_ms,
+        confirm_ms: start.elapsed().as_secs_f64() * 1e3,
+    }
+}
+
+/// Range filters, rotated-box non-maximum suppression, `min_score`, best first, at most
+/// `max_instances`.
+pub fn select(mut poses: Vec<Pose>, options: &MatchOptions, tw: f32, th: f32) -> Vec<Pose> {
+    poses.retain(|p| {
+        options.angle_range.is_none_or(|r| r.contains(p.angle_deg))
+            && options
+                .scale_range
+                .is_none_or(|r| r.contains(p.scale_x) && r.contains(p.scale_y))
+    });
+    poses.sort_by(|a, b| b.score.total_cmp(&a.score));
+    let mut kept: Vec<(Pose, [(f32, f32); 4])> = Vec::new();
+    for pose in poses {
+        if kept.len() == options.max_instances || pose.score < options.effective_min_score() {
+            break;
+        }
+        let corners = pose.corners(tw, th);
+        if kept
+            .iter()
+            .all(|(_, other)| rotated_iou(&corners, other) <= options.max_overlap)
+        {
+            kept.push((pose, corners));
+        }
+    }
+    kept.into_iter().map(|(p, _)| p).collect()
+}
+
+#[cfg(test)]
+mod tests {
+    use rand::{Rng, SeedableRng, rngs::StdRng};
+
+    use super::*;
+    use crate::geometry::angle_distance_deg;
+
+    /// An aperiodic smooth texture: a sum of sinusoids of random frequency, direction and phase.
+    fn texture(width: usize, height: usize, seed: u64) -> GrayImage32 {
+        let mut rng = StdRng::seed_from_u64(seed);
+        let waves: Vec<(f32, f32, f32)> = (0..16)
+            .map(|_| {
+                let frequency: f32 = rng.random_range(0.05..0.45);
+                let direction: f32 = rng.random_range(0.0..std::f32::consts::TAU);
+                let phase: f32 = rng.random_range(0.0..std::f32::consts::TAU);
+                (
+                    frequency * direction.cos(),
+                    frequency * direction.sin(),
+                    phase,
+                )
+            })
+            .collect();
+        let mut values = Vec::with_capacity(width * height);
+        for y in 0..height {
+            for x in 0..width {
+                let v: f32 = waves
+                    .iter()
+                    .map(|(fx, fy, p)| (fx * x as f32 + fy * y as f32 + p).sin())
+                    .sum();
+                values.push(0.5 + 0.05 * v);
+            }
+        }
+        GrayImage32 {
+            width,
+            height,
+            values,
+        }
+    }
+
+    /// The 36x36 template that `truth` maps onto `image` (bilinear).
+    fn cut_template(image: &GrayImage32, truth: &Pose) -> GrayImage32 {
+        let mut values = Vec::new();
+        for b in 0..36 {
+            for a in 0..36 {
+                let (x, y) = truth.map_point(a as f32 - 17.5, b as f32 - 17.5);
+                let (x0, y0) = (x.floor() as usize, y.floor() as usize);
+                let (fx, fy) = (x - x0 as f32, y - y0 as f32);
+                let at = |xx: usize, yy: usize| image.values[yy * image.width + xx];
+                let top = at(x0, y0) * (1.0 - fx) + at(x0 + 1, y0) * fx;
+                let bottom = at(x0, y0 + 1) * (1.0 - fx) + at(x0 + 1, y0 + 1) * fx;
+                values.push(top * (1.0 - fy) + bottom * fy);
+            }
+        }
+        GrayImage32 {
+            width: 36,
+            height: 36,
+            values,
+        }
+    }
+
+    fn pose(x: f32, y: f32, angle_deg: f32, scale: f32, network_score: f32) -> Pose {
+        Pose {
+            x,
+            y,
+            angle_deg,
+            scale_x: scale,
+            scale_y: scale,
+            score: network_score,
+            network_score,
+        }
+    }
+
+    /// A textured scene with one object at a known pose and its template.
+    fn scene() -> (GrayImage32, GrayImage32, Pose) {
+        let image = texture(240, 240, 7);
+        let truth = Pose {
+            x: 150.3,
+            y: 90.6,
+            angle_deg: 33.0,
+            scale_x: 1.2,
+            scale_y: 0.9,
+            score: 1.0,
+            network_score: 0.0,
+        };
+        let template = cut_template(&image, &truth);
+        (image, template, truth)
+    }
+
+    /// Network candidates elsewhere in the scene, each with a better heatmap value than the
+    /// object's own candidate.
+    fn decoys() -> Vec<Pose> {
+        vec![
+            pose(60.0, 60.0, -20.0, 1.0, 0.9),
+            pose(70.0, 180.0, 100.0, 1.1, 0.8),
+            pose(180.0, 190.0, 5.0, 0.9, 0.7),
+            pose(120.0, 140.0, -150.0, 1.0, 0.6),
+        ]
+    }
+
+    fn assert_is_truth(found: &Pose, truth: &Pose) {
+        assert!(
+            (found.x - truth.x).abs() < 0.2 && (found.y - truth.y).abs() < 0.2,
+            "{found:?}"
+        );
+        assert!(
+            angle_distance_deg(found.angle_deg, truth.angle_deg) < 0.3,
+            "{found:?}"
+        );
+        assert!(
+            (found.scale_x - truth.scale_x).abs() < 0.01
+                && (found.scale_y - truth.scale_y).abs() < 0.01,
+            "{found:?}"
+        );
+    }
+
+    #[test]
+    fn a_true_candidate_outranks_decoys_with_better_heatmap_values() {
+        let (image, template, truth) = scene();
+        // The object's own peak: last by heatmap value, 4 px off, 40° and 15 % wrong.
+        let mut candidates = decoys();
+        candidates.push(pose(
+            truth.x + 3.0,
+            truth.y - 2.5,
+            truth.angle_deg + 40.0,
+            1.0,
+            0.2,
+        ));
+        let options = MatchOptions {
+            max_instances: 1,
+            ..MatchOptions::default()
+        };
+        let verified = verify_candidates(&template, (36.0, 36.0), &image, candidates, &options);
+        assert_eq!(verified.poses.len(), 1, "{:?}", verified.poses);
+        let found = verified.poses[0];
+        assert_is_truth(&found, &truth);
+        assert!(found.score > 0.95, "{found:?}");
+        // The heatmap value of the peak it came from is reported beside the verified score.
+        assert_eq!(found.network_score, 0.2);
+    }
+
+    #[test]
+    fn candidates_that_refine_onto_one_object_collapse() {
+        let (image, template, truth) = scene();
+        let near: Vec<Pose> = [
+            (-3.0, 2.0, 10.0),
+            (2.5, 3.0, -25.0),
+            (0.5, -3.5, 5.0),
+            (4.0, 0.0, 0.0),
+        ]
+        .iter()
+        .enumerate()
+        .map(|(k, &(dx, dy, da))| {
+            pose(
+                truth.x + dx,
+                truth.y + dy,
+                truth.angle_deg + da,
+                1.0,
+                0.5 - 0.1 * k as f32,
+            )
+        })
+        .collect();
+        let options = MatchOptions {
+            max_instances: 10,
+            ..MatchOptions::default()
+        };
+        let verified = verify_candidates(&template, (36.0, 36.0), &image, near, &options);
+        assert_eq!(verified.poses.len(), 1, "{:?}", verified.poses);
+        assert_is_truth(&verified.poses[0], &truth);
+    }
+
+    #[test]
+    fn min_score_filters_on_the_verified_score_not_the_heatmap() {
+        let (image, template, truth) = scene();
+        let mut candidates = decoys();
+        candidates.push(pose(
+            truth.x + 1.0,
+            truth.y + 1.0,
+            truth.angle_deg - 10.0,
+            1.0,
+            0.2,
+        ));
+        let everything = MatchOptions {
+            min_score: Some(f32::MIN_POSITIVE),
+            ..MatchOptions::default()
+        };
+        let all = verify_candidates(
+            &template,
+            (36.0, 36.0),
+            &image,
+            candidates.clone(),
+            &everything,
+        );
+        // Best verified first, whatever the heatmap said.
+        assert_is_truth(&all.poses[0], &truth);
+        assert!(all.poses.windows(2).all(|w| w[0].score >= w[1].score));
+        let decoy_best = all.poses[1].score;
+        assert!(
+            decoy_best < 0.8,
+            "a decoy verified too well: {:?}",
+            all.poses
+        );
+        // A threshold between the decoys and the object keeps only the object, although every
+        // decoy's heatmap value is above it.
+        let threshold = (decoy_best + all.poses[0].score) / 2.0;
+        let strict = MatchOptions {
+            min_score: Some(threshold),
+            ..MatchOptions::default()
+        };
+        let kept = verify_candidates(&template, (36.0, 36.0), &image, candidates, &strict);
+        assert_eq!(kept.poses.len(), 1, "{:?}", kept.poses);
+        assert!(kept.poses[0].score >= threshold);
+        assert_is_truth(&kept.poses[0], &truth);
+    }
+
+    #[test]
+    fn without_refinement_the_heatmap_value_is_the_score() {
+        let options = MatchOptions {
+            refine: false,
+            min_score: Some(0.65),
+            ..MatchOptions::default()
+        };
+        let poses = select(decoys(), &options, 36.0, 36.0);
+        assert_eq!(poses.len(), 2);
+        assert!(
+            poses
+                .iter()
+                .all(|p| p.score == p.network_score && p.score >= 0.65)
+        );
+    }
+}
