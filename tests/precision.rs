@@ -141,7 +141,7 @@ fn three_paths(matcher: &Matcher, pairs: u64) -> [usize; 3] {
         let answered: Vec<Pose> = run
             .verified
             .iter()
-            .filter(|p| p.score >= options.min_score)
+            .filter(|p| p.score >= options.effective_min_score())
             .copied()
             .collect();
         for (path, poses) in [run.network, run.refined, answered].iter().enumerate() {
