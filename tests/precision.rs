@@ -6,7 +6,7 @@ mod common;
 
 use burn::prelude::*;
 use common::{reference_dir, structured_photo_dir};
-use posematch::evaluation::{ANY_PEAK, match_pair, pair_error};
+use posematch::evaluation::{ANY_PEAK, Paths, match_pair, pair_error};
 use posematch::geometry::Pose;
 use posematch::imaging::InputConvention;
 use posematch::matcher::{MatchOptions, Matcher};
@@ -137,7 +137,17 @@ fn three_paths(matcher: &Matcher, pairs: u64) -> [usize; 3] {
     for index in 0..pairs {
         let pair = make_pair(&photos, &spec(), 3, index).unwrap();
         let truth = pair.truth[0];
-        let run = match_pair(matcher, &pair, &options, ANY_PEAK, true).unwrap();
+        let run = match_pair(
+            matcher,
+            &pair,
+            &options,
+            ANY_PEAK,
+            Paths {
+                refined: true,
+                verified: true,
+            },
+        )
+        .unwrap();
         let answered: Vec<Pose> = run
             .verified
             .iter()

@@ -13,7 +13,7 @@ use serde_json::json;
 
 use super::{CliError, ModelArgs, load_model};
 use crate::evaluation::{
-    ANY_PEAK, DetectionCounts, PairError, Summary, match_detections, match_pair,
+    ANY_PEAK, DetectionCounts, PairError, Paths, Summary, match_detections, match_pair,
     matched_predictions, pair_error, summarise,
 };
 use crate::geometry::Pose;
@@ -46,16 +46,9 @@ pub struct EvalArgs {
     /// Only the network's poses (no refined and verified rows).
     #[arg(long)]
     pub no_refine: bool,
-    /// `min_score` of the verified path (as `posematch match --min-score`; default
-    /// 0.8).
-    #[arg(long)]
-    pub min_score: Option<f32>,
-    /// Heatmap value from which a peak is a candidate (as `posematch match`).
-    #[arg(long, default_value_t = MatchOptions::default().candidate_threshold)]
-    pub candidate_threshold: f32,
-    /// Most candidates verified per tile; 0 = automatic (as `posematch match`).
-    #[arg(long, default_value_t = MatchOptions::default().max_candidates)]
-    pub max_candidates: usize,
+    /// The verified path's options, as `posematch match`'s.
+    #[command(flatten)]
+    pub verification: super::VerificationArgs,
     /// Multi-instance images (320x320, 2–8 instances) with precision/recall instead of pairs.
     #[arg(long)]
     pub multi_instance: bool,
@@ -124,9 +117,9 @@ pub fn run(args: EvalArgs) -> Result<(), CliError> {
         } else {
             1
         },
-        min_score: args.min_score,
-        candidate_threshold: args.candidate_threshold,
-        max_candidates: args.max_candidates,
+        min_score: args.verification.min_score,
+        candidate_threshold: args.verification.candidate_threshold,
+        max_candidates: args.verification.max_candidates,
         ..MatchOptions::default()
     };
     options.validate().map_err(CliError::Usage)?;
@@ -159,7 +152,16 @@ pub fn run(args: EvalArgs) -> Result<(), CliError> {
         let (ptw, pth) = (pair.template.width as f32, pair.template.height as f32);
         let runs: Vec<(Vec<Pose>, f64)> = match &matcher {
             Some(matcher) => {
-                let run = match_pair(matcher, &pair, &options, network_min_score, !args.no_refine)?;
+                let run = match_pair(
+                    matcher,
+                    &pair,
+                    &options,
+                    network_min_score,
+                    Paths {
+                        refined: !args.no_refine,
+                        verified: !args.no_refine,
+                    },
+                )?;
                 let flags = matched_predictions(&run.verified, &pair.truth, ptw, pth);
                 for (pose, &true_positive) in run.verified.iter().zip(&flags) {
                     calibration.add(pose.score, true_positive);

@@ -33,18 +33,8 @@ pub struct MatchArgs {
     /// Report at most this many instances, best first.
     #[arg(long, default_value_t = MatchOptions::default().max_instances)]
     pub max_instances: usize,
-    /// Report only answers scoring at least this (0..1): the verified similarity of the
-    /// template at the refined pose, or the heatmap value with --no-refine.
-    /// Default 0.8 (0.5 on the heatmap with --no-refine).
-    #[arg(long)]
-    pub min_score: Option<f32>,
-    /// Heatmap value (0..1) from which a network peak is a candidate for verification.
-    #[arg(long, default_value_t = MatchOptions::default().candidate_threshold)]
-    pub candidate_threshold: f32,
-    /// Most candidates verified per network tile; 0 = automatic (3 per --max-instances, at
-    /// least 10).
-    #[arg(long, default_value_t = MatchOptions::default().max_candidates)]
-    pub max_candidates: usize,
+    #[command(flatten)]
+    pub verification: super::VerificationArgs,
     /// Suppress an instance whose rotated box overlaps a better one by more than this IoU.
     #[arg(long, default_value_t = MatchOptions::default().max_overlap)]
     pub max_overlap: f32,
@@ -92,9 +82,9 @@ impl MatchArgs {
     fn options(&self) -> Result<MatchOptions, CliError> {
         let options = MatchOptions {
             max_instances: self.max_instances,
-            min_score: self.min_score,
-            candidate_threshold: self.candidate_threshold,
-            max_candidates: self.max_candidates,
+            min_score: self.verification.min_score,
+            candidate_threshold: self.verification.candidate_threshold,
+            max_candidates: self.verification.max_candidates,
             max_overlap: self.max_overlap,
             angle_range: self.angle_range,
             scale_range: self.scale_range,

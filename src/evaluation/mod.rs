@@ -70,15 +70,21 @@ pub struct PairRun {
     pub verified_ms: f64,
 }
 
+/// Which paths besides the network's own [`match_pair`] runs (the others stay empty).
+#[derive(Debug, Clone, Copy)]
+pub struct Paths {
+    pub refined: bool,
+    pub verified: bool,
+}
+
 /// Runs one generated pair. `options` are the verified path's (refinement on); the network path
-/// keeps its peaks at or above `network_min_score` (heatmap); `refine_network` adds the refined
-/// row.
+/// keeps its peaks at or above `network_min_score` (heatmap).
 pub fn match_pair(
     matcher: &Matcher,
     pair: &SyntheticPair,
     options: &MatchOptions,
     network_min_score: f32,
-    refine_network: bool,
+    paths: Paths,
 ) -> Result<PairRun, MatchError> {
     let start = Instant::now();
     let encoded = matcher.encode_template(&pair.template)?;
@@ -119,7 +125,7 @@ pub fn match_pair(
     );
     let start = Instant::now();
     let image = GrayImage32::from_rgb(&pair.search);
-    let refined = if refine_network {
+    let refined = if paths.refined {
         network
             .iter()
             .map(|p| refine_pose(&encoded.gray, &image, p))
@@ -128,6 +134,16 @@ pub fn match_pair(
         Vec::new()
     };
     let refined_ms = network_ms + ms_since(start);
+    if !paths.verified {
+        return Ok(PairRun {
+            network,
+            network_ms,
+            refined,
+            refined_ms,
+            verified: Vec::new(),
+            verified_ms: 0.0,
+        });
+    }
     let start = Instant::now();
     let verified_options = MatchOptions {
         min_score: Some(f32::MIN_POSITIVE),
@@ -176,7 +192,11 @@ pub fn evaluate_pairs(
     };
     let (mut network, mut refined) = (Vec::new(), Vec::new());
     for pair in pairs {
-        let run = match_pair(matcher, pair, &options, ANY_PEAK, true)?;
+        let paths = Paths {
+            refined: true,
+            verified: false,
+        };
+        let run = match_pair(matcher, pair, &options, ANY_PEAK, paths)?;
         let truth = &pair.truth[0];
         let (tw, th) = (pair.template.width as f32, pair.template.height as f32);
         let error = |poses: &[Pose]| poses.first().map(|p| pair_error(p, truth, tw, th));

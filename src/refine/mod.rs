@@ -32,7 +32,7 @@ use crate::geometry::{Pose, wrap_angle_deg};
 mod align;
 mod verify;
 
-pub use verify::{Screened, Verified, Verifier, chance_similarity};
+pub use verify::{Screened, Verified, Verifier};
 
 use crate::imaging::RgbImage32;
 
