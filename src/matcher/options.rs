@@ -121,11 +121,11 @@ pub const DEFAULT_MIN_SCORE: f32 = 0.8;
 pub const NETWORK_MIN_SCORE: f32 = 0.5;
 
 /// Default `candidate_threshold` (heatmap value; README "Verified candidates").
-pub const DEFAULT_CANDIDATE_THRESHOLD: f32 = 0.05;
+pub const DEFAULT_CANDIDATE_THRESHOLD: f32 = 0.01;
 
 /// Fewest candidates verified per tile by default: a weakly trained network's object is often
 /// among its first few dozen peaks, not first (README "Verified candidates").
-pub const MIN_CANDIDATE_BUDGET: usize = 50;
+pub const MIN_CANDIDATE_BUDGET: usize = 100;
 
 impl Default for MatchOptions {
     fn default() -> Self {

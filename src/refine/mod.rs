@@ -195,6 +195,31 @@ struct AngleScaleGrid {
     far_step_deg: f32,
     /// Scale factors per axis over the rest of the circle.
     far_factors: Vec<f32>,
+    /// `Some(n)`: score every angle at the start's scales first and try the scale factors
+    /// only at the `n` best angles (the screen's shortcut); `None`: every angle x scales.
+    angles_first: Option<usize>,
+}
+
+/// The `keep` angles of `angles` at which the template at `start`'s scales scores best.
+fn best_angles(
+    points: &TemplatePoints,
+    image: &GrayImage32,
+    start: &Pose,
+    angles: Vec<f32>,
+    keep: usize,
+) -> Vec<f32> {
+    let mut scored: Vec<(f32, f32)> = angles
+        .into_iter()
+        .map(|angle_deg| {
+            let pose = Pose {
+                angle_deg,
+                ..*start
+            };
+            (points.score(image, &pose), angle_deg)
+        })
+        .collect();
+    scored.sort_by(|a, b| b.0.total_cmp(&a.0));
+    scored.into_iter().take(keep).map(|(_, angle)| angle).collect()
 }
 
 impl AngleScaleGrid {
@@ -205,6 +230,7 @@ impl AngleScaleGrid {
             near_factors: (0..5).map(|k| 0.7f32 * 2f32.powf(k as f32 / 4.0)).collect(),
             far_step_deg: 6.0,
             far_factors: (0..3).map(|k| 0.85f32 * 1.18f32.powi(k)).collect(),
+            angles_first: None,
         }
     }
 
@@ -229,11 +255,15 @@ impl AngleScaleGrid {
         };
         let try_offsets =
             |offsets: &mut dyn Iterator<Item = f32>, factors: &[f32], best: &mut Scored| {
-                for offset in offsets {
-                    let angle_deg = start.angle_deg + offset;
-                    if !allowed(wrap_angle_deg(angle_deg)) {
-                        continue;
-                    }
+                let angles: Vec<f32> = offsets
+                    .map(|offset| start.angle_deg + offset)
+                    .filter(|&angle| allowed(wrap_angle_deg(angle)))
+                    .collect();
+                let angles = match self.angles_first {
+                    Some(keep) => best_angles(points, image, start, angles, keep),
+                    None => angles,
+                };
+                for angle_deg in angles {
                     for &factor_x in factors {
                         for &factor_y in factors {
                             let pose = Pose {

@@ -37,6 +37,12 @@ const MAX_ANISOTROPY: f32 = 2.5;
 /// Blur of the screening level's alignment (level pixels): a basin of a few pixels.
 const LEVEL_SIGMA: f32 = 1.0;
 
+/// Angles of the screen's grid at which every scale pair is tried: the best few at the
+/// candidate's own scales. Measured on lomiri-wallpapers (500 pairs, default weights, 100
+/// candidates): every angle x scales 79.2 % at 80 ms per pair, the best 3 angles 79.6 % at
+/// 64 ms, the best 5 79.0 %.
+const SCREEN_ANGLES_KEPT: usize = 3;
+
 /// Gauss–Newton iterations of the screening level's alignment.
 const LEVEL_ITERATIONS: usize = 10;
 
@@ -154,6 +160,7 @@ impl<'a> Verifier<'a> {
             near_factors: (0..5).map(|k| 0.7f32 * 2f32.powf(k as f32 / 4.0)).collect(),
             far_step_deg: (1.5 / radius).to_degrees().clamp(3.0, 10.0),
             far_factors: (0..3).map(|k| 0.85f32 * 1.18f32.powi(k)).collect(),
+            angles_first: Some(SCREEN_ANGLES_KEPT),
         };
         Self {
             template,

@@ -69,7 +69,7 @@ max_image_pixels = 40000000
 max_message_bytes = 67108864
 log_format = "text"
 shutdown_grace_seconds = 30
-candidate_threshold = 0.05
+candidate_threshold = 0.01
 max_candidates = 0
 "#;
 
