@@ -13,8 +13,8 @@ use serde_json::json;
 
 use super::{CliError, ModelArgs, load_model};
 use crate::evaluation::{
-    ANY_PEAK, DetectionCounts, PairError, Paths, Summary, match_detections, match_pair,
-    matched_predictions, pair_error, summarise,
+    ANY_PEAK, DetectionCounts, PairError, Paths, SUCCESS_IOU, Summary, match_detections,
+    match_pair, matched_predictions, pair_error, summarise,
 };
 use crate::geometry::Pose;
 use crate::matcher::MatchOptions;
@@ -56,6 +56,10 @@ pub struct EvalArgs {
     /// baseline, always refined; needs no weights).
     #[arg(long, value_enum, default_value = "tdcm")]
     pub method: super::Method,
+    /// Also print each path's Succ per source photo (single-instance pairs): which photos the
+    /// misses come from.
+    #[arg(long)]
+    pub by_photo: bool,
     /// Print JSON instead of the table.
     #[arg(long)]
     pub json: bool,
@@ -132,6 +136,8 @@ pub fn run(args: EvalArgs) -> Result<(), CliError> {
     let mut rows: [Vec<(Option<PairError>, f64)>; 3] = Default::default();
     let mut counts = [DetectionCounts::default(); 3];
     let mut calibration = Calibration::default();
+    // Source photo -> (pairs, successes per row).
+    let mut by_photo: std::collections::BTreeMap<usize, (usize, [usize; 3])> = Default::default();
     for index in 0..args.count {
         let pair = if args.multi_instance {
             make_multi_instance(
@@ -185,12 +191,16 @@ pub fn run(args: EvalArgs) -> Result<(), CliError> {
                 args.multi_instance,
             )],
         };
+        let photo = by_photo.entry(pair.photo).or_default();
+        photo.0 += 1;
         for (row, (poses, ms)) in runs.into_iter().enumerate() {
             if args.multi_instance {
                 counts[row].add(match_detections(&poses, &pair.truth, ptw, pth));
             } else {
                 let truth = &pair.truth[0];
-                rows[row].push((poses.first().map(|p| pair_error(p, truth, ptw, pth)), ms));
+                let error = poses.first().map(|p| pair_error(p, truth, ptw, pth));
+                photo.1[row] += usize::from(error.is_some_and(|e| e.iou >= SUCCESS_IOU));
+                rows[row].push((error, ms));
             }
         }
     }
@@ -233,8 +243,52 @@ pub fn run(args: EvalArgs) -> Result<(), CliError> {
             )
         });
         print_table(&label, &summaries, changes, calibration, args.json);
+        if args.by_photo {
+            print_by_photo(&photos, &names, &by_photo, &args.images, args.json);
+        }
     }
     Ok(())
+}
+
+/// Each path's Succ per source photo, most pairs first.
+fn print_by_photo(
+    photos: &PhotoSet,
+    names: &[&str],
+    by_photo: &std::collections::BTreeMap<usize, (usize, [usize; 3])>,
+    root: &Path,
+    as_json: bool,
+) {
+    let mut entries: Vec<(String, usize, &[usize])> = by_photo
+        .iter()
+        .map(|(&photo, (pairs, successes))| {
+            let path = &photos.paths[photo];
+            let name = path
+                .strip_prefix(root)
+                .unwrap_or(path)
+                .display()
+                .to_string();
+            (name, *pairs, &successes[..names.len()])
+        })
+        .collect();
+    entries.sort_by(|a, b| b.1.cmp(&a.1).then_with(|| a.0.cmp(&b.0)));
+    if as_json {
+        let rows: Vec<_> = entries
+            .iter()
+            .map(|(name, pairs, successes)| {
+                json!({"photo": name, "pairs": pairs, "successes": successes})
+            })
+            .collect();
+        println!("{}", json!({"paths": names, "by_photo": rows}));
+        return;
+    }
+    println!("Succ per source photo ({}):", names.join(" | "));
+    for (name, pairs, successes) in entries {
+        let shares: Vec<String> = successes
+            .iter()
+            .map(|&s| format!("{:5.1}%", 100.0 * s as f32 / pairs as f32))
+            .collect();
+        println!("{pairs:5} pairs  {}  {name}", shares.join(" "));
+    }
 }
 
 /// Answers of the multi-instance network path: heatmap peaks at or above the network path's

@@ -24,7 +24,8 @@
 //!
 //! [`Verifier`] decides between many candidates of one image (the network proposes, the image
 //! decides): a cheap screen of each candidate first, the same angle x scale search on a
-//! downsampled image, then the fine search and alignment for the candidates that survive, each
+//! downsampled image (every angle at the candidate's scales, every scale pair only at the best
+//! few angles), then the fine search and alignment for the candidates that survive, each
 //! ending with its similarity at the refined pose ([`verify`]).
 
 use crate::geometry::{Pose, wrap_angle_deg};
@@ -219,7 +220,11 @@ fn best_angles(
         })
         .collect();
     scored.sort_by(|a, b| b.0.total_cmp(&a.0));
-    scored.into_iter().take(keep).map(|(_, angle)| angle).collect()
+    scored
+        .into_iter()
+        .take(keep)
+        .map(|(_, angle)| angle)
+        .collect()
 }
 
 impl AngleScaleGrid {

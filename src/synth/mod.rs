@@ -70,6 +70,9 @@ pub struct SyntheticPair {
     pub template: RgbImage32,
     pub search: RgbImage32,
     pub truth: Vec<Pose>,
+    /// The photo the template was cut from (an index into [`PhotoSet::paths`]), so that results
+    /// can be broken down by source.
+    pub photo: usize,
 }
 
 #[derive(Debug, thiserror::Error)]
@@ -243,7 +246,8 @@ pub fn make_pair(
     let (tw, th) = (spec.template_width, spec.template_height);
     let side = spec.search_side as f32;
     for _ in 0..TRIES {
-        let photo = &photos.photos[rng.random_range(0..photos.len())];
+        let photo_index = rng.random_range(0..photos.len());
+        let photo = &photos.photos[photo_index];
         let (pw, ph) = (photo.width(), photo.height());
         let sx = rng.random_range(lo..=hi);
         let sy = rng.random_range(lo..=hi);
@@ -292,6 +296,7 @@ pub fn make_pair(
             template,
             search,
             truth: vec![truth],
+            photo: photo_index,
         });
     }
     Err(SynthError::Unplaceable {
@@ -319,7 +324,8 @@ pub fn make_multi_instance(
     let (lo, hi) = level.scale_range();
     for _ in 0..TRIES {
         let background_photo = &photos.photos[rng.random_range(0..photos.len())];
-        let template_photo = &photos.photos[rng.random_range(0..photos.len())];
+        let template_index = rng.random_range(0..photos.len());
+        let template_photo = &photos.photos[template_index];
         if background_photo.width() < SIDE
             || background_photo.height() < SIDE
             || template_photo.width() < template_side
@@ -384,6 +390,7 @@ pub fn make_multi_instance(
             template,
             search,
             truth,
+            photo: template_index,
         });
     }
     Err(SynthError::Unplaceable {

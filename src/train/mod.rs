@@ -178,6 +178,7 @@ fn training_example(
         template,
         mut search,
         truth,
+        ..
     } = make_pair(photos, spec, seed, index)?;
     let mut rng = StdRng::seed_from_u64(seed ^ 0x7A11 ^ index.rotate_left(17));
     jitter(&mut search, &mut rng);

@@ -1,0 +1,156 @@
+//! The PyTorch trainer (`training/`) trains the network we serve: weights it exported
+//! (`training/fixtures/trainer-weights.pth`, perturbed random initialisation) give our burn
+//! network the same five maps as its own model on the stored inputs, directly and after
+//! `posematch weights import`; and its labels equal `src/train/labels.rs`'s for the stored poses.
+//! All within 1e-4. The fixture is written by `python3 training/export_fixture.py`; this test
+//! needs no PyTorch.
+
+mod common;
+
+use std::path::PathBuf;
+
+use burn::prelude::*;
+use posematch::geometry::Pose;
+use posematch::model::{Tdcm, load_weights, set_fused_cpu_kernels};
+use posematch::train::LabelMaps;
+use safetensors::SafeTensors;
+
+const TOLERANCE: f32 = 1e-4;
+
+fn fixtures() -> PathBuf {
+    PathBuf::from(env!("CARGO_MANIFEST_DIR")).join("training/fixtures")
+}
+
+fn read_f32(st: &SafeTensors, name: &str) -> (Vec<f32>, Vec<usize>) {
+    let view = st
+        .tensor(name)
+        .unwrap_or_else(|e| panic!("fixture {name}: {e}"));
+    assert_eq!(view.dtype(), safetensors::Dtype::F32, "{name}");
+    let values = view
+        .data()
+        .chunks_exact(4)
+        .map(|b| f32::from_le_bytes([b[0], b[1], b[2], b[3]]))
+        .collect();
+    (values, view.shape().to_vec())
+}
+
+fn tensor(st: &SafeTensors, name: &str, device: &Device) -> Tensor<4> {
+    let (values, shape) = read_f32(st, name);
+    Tensor::from_data(TensorData::new(values, shape), device)
+}
+
+/// Largest absolute difference, and where.
+fn worst(expected: &[f32], actual: &[f32]) -> (usize, f32) {
+    assert_eq!(expected.len(), actual.len());
+    expected
+        .iter()
+        .zip(actual)
+        .map(|(e, a)| (e - a).abs())
+        .enumerate()
+        .fold((0, 0f32), |best, (i, d)| {
+            if d > best.1 || d.is_nan() {
+                (i, d)
+            } else {
+                best
+            }
+        })
+}
+
+fn check_maps(model: &Tdcm, st: &SafeTensors, device: &Device, what: &str) {
+    let kernels = model
+        .template_encoder
+        .forward(tensor(st, "template", device));
+    let maps = model
+        .search_matcher
+        .forward(tensor(st, "search", device), kernels)
+        .stacked;
+    let (expected, shape) = read_f32(st, "maps");
+    assert_eq!(maps.dims().to_vec(), shape, "{what}: map shape");
+    let actual: Vec<f32> = maps.into_data().try_to_vec().unwrap();
+    let (at, diff) = worst(&expected, &actual);
+    println!("{what}: max|diff| {diff:.2e}");
+    assert!(
+        diff <= TOLERANCE,
+        "{what}: map element {at} differs by {diff:e} (trainer {}, ours {})",
+        expected[at],
+        actual[at]
+    );
+}
+
+#[test]
+fn trainer_weights_give_our_network_the_trainers_maps() {
+    let bytes = std::fs::read(fixtures().join("trainer-fixture.safetensors")).unwrap();
+    let st = SafeTensors::deserialize(&bytes).unwrap();
+    let device = Device::flex();
+    let weights = fixtures().join("trainer-weights.pth");
+    let model = load_weights(&weights, &device).expect("the trainer's export loads");
+    for fused in [true, false] {
+        set_fused_cpu_kernels(fused);
+        check_maps(
+            &model,
+            &st,
+            &device,
+            &format!("direct, fused kernels {fused}"),
+        );
+    }
+    set_fused_cpu_kernels(true);
+
+    // The documented import step: .pth -> our own format, then served from that.
+    let dir = tempfile::tempdir().unwrap();
+    let imported = dir.path().join("trainer.bpk");
+    let (code, _, stderr) = common::posematch(&[
+        "weights",
+        "import",
+        "--from",
+        weights.to_str().unwrap(),
+        "--out",
+        imported.to_str().unwrap(),
+    ]);
+    assert_eq!(code, 0, "weights import failed: {stderr}");
+    let model = load_weights(&imported, &device).expect("the imported weights load");
+    check_maps(&model, &st, &device, "after `posematch weights import`");
+}
+
+#[test]
+fn trainer_labels_equal_ours() {
+    let bytes = std::fs::read(fixtures().join("trainer-fixture.safetensors")).unwrap();
+    let st = SafeTensors::deserialize(&bytes).unwrap();
+    let (poses, pose_shape) = read_f32(&st, "label_poses");
+    let (labels, shape) = read_f32(&st, "labels");
+    let (count, channels, height, width) = (shape[0], shape[1], shape[2], shape[3]);
+    assert_eq!((pose_shape[0], pose_shape[1], channels), (count, 5, 6));
+    let plane = height * width;
+    for (k, p) in poses.chunks_exact(5).enumerate() {
+        let truth = Pose {
+            x: p[0],
+            y: p[1],
+            angle_deg: p[2],
+            scale_x: p[3],
+            scale_y: p[4],
+            score: 1.0,
+            network_score: 0.0,
+        };
+        let ours = LabelMaps::render(width, height, &[truth], 36.0, 36.0);
+        let fields = [
+            ("heatmap", &ours.heatmap),
+            ("valid", &ours.valid),
+            ("sign", &ours.sign),
+            ("cos", &ours.cos),
+            ("scale_x", &ours.scale_x),
+            ("scale_y", &ours.scale_y),
+        ];
+        for (c, (name, values)) in fields.iter().enumerate() {
+            let start = (k * channels + c) * plane;
+            let theirs = &labels[start..start + plane];
+            let (at, diff) = worst(theirs, values);
+            assert!(
+                diff <= TOLERANCE,
+                "pose {k} {name}: pixel {at} differs by {diff:e} (trainer {}, ours {})",
+                theirs[at],
+                values[at]
+            );
+        }
+        let valid: f32 = ours.valid.iter().sum();
+        assert!(valid > 0.0, "pose {k} supervises no pixel");
+    }
+}

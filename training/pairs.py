@@ -1,0 +1,294 @@
+"""Training pairs cut on the device, by the paper's Algorithm 1 as `src/synth` cuts them.
+
+The photos are decoded once and held on the device as one uint8 tensor; each batch draws boxes,
+angles, scales and window positions with a `torch.Generator`, cuts every search window with one
+`grid_sample` (bilinear, pixel centres at integers, as `src/synth/sampler.rs`) and every template
+with an exact antialiased-bilinear resize (the filter of `fast_image_resize` and PIL that
+`resize_rgb` uses), rejects what `src/synth` rejects (a box that does not fit, a window with
+blank border, a template flatter than `min_structure`), jitters the searches as
+`src/train/jitter.rs` does and renders the labels as `src/train/labels.rs` does. No CPU data
+loader runs on the hot path.
+"""
+
+from dataclasses import dataclass
+import math
+
+import torch
+import torch.nn.functional as F
+
+# Scale ranges of the paper's levels (src/synth `Level::scale_range`).
+LEVELS = {"S1": (1.0, 1.0), "S1.5": (0.8, 1.5), "S2": (0.6, 2.0), "S2.5": (0.5, 2.5)}
+DEFAULT_MIN_STRUCTURE = 6.0
+# src/train/labels.rs
+SIGMA_FRACTION = 1.0 / 6.0
+VALID_THRESHOLD = 0.5
+
+
+class PhotoBank:
+    """Photos as one zero-padded uint8 tensor [N, 3, Hmax, Wmax] plus each one's size."""
+
+    def __init__(self, photos, device):
+        if not photos:
+            raise ValueError("no photos: give a corpus folder with at least one image")
+        h = max(p.shape[0] for p in photos)
+        w = max(p.shape[1] for p in photos)
+        bank = torch.zeros((len(photos), 3, h, w), dtype=torch.uint8)
+        for i, p in enumerate(photos):
+            bank[i, :, : p.shape[0], : p.shape[1]] = torch.from_numpy(p).permute(2, 0, 1)
+        self.pixels = bank.to(device)
+        self.sizes = torch.tensor([[p.shape[1], p.shape[0]] for p in photos], device=device)
+        self.device = torch.device(device)
+
+    def __len__(self):
+        return self.pixels.shape[0]
+
+
+@dataclass
+class Pairs:
+    """A batch: RGB in [0, 1] (templates [B,3,th,tw], searches [B,3,S,S]) and truth
+    [B, 5] = x, y, angle_deg, scale_x, scale_y in the public pose convention, plus the source
+    box (x0, y0, bw, bh) and photo index for checks."""
+
+    templates: torch.Tensor
+    searches: torch.Tensor
+    truth: torch.Tensor
+    boxes: torch.Tensor
+    photos: torch.Tensor
+
+
+def _uniform(n, lo, hi, gen, device):
+    return lo + (hi - lo) * torch.rand(n, generator=gen, device=device)
+
+
+def resize_weights(in_sizes, out_size, span):
+    """Antialiased bilinear (triangle filter) weights [M, out_size, span] from `in_sizes[m]`
+    source pixels (the first `in_sizes[m]` of `span`) to `out_size`: PIL's and
+    fast_image_resize's `Bilinear` convolution."""
+    scale = in_sizes.float() / out_size  # [M]
+    support = scale.clamp(min=1.0)
+    o = torch.arange(out_size, device=in_sizes.device, dtype=torch.float32)
+    s = torch.arange(span, device=in_sizes.device, dtype=torch.float32)
+    centre = (o[None, :] + 0.5) * scale[:, None]  # [M, out]
+    lo = (centre - support[:, None] + 0.5).floor().clamp(min=0)  # PIL: int(center - support + 0.5)
+    hi = (centre + support[:, None] + 0.5).floor()
+    hi = torch.minimum(hi, in_sizes[:, None].float())
+    x = (s[None, None, :] - centre[..., None] + 0.5) / support[:, None, None]
+    w = (1.0 - x.abs()).clamp(min=0.0)
+    inside = (s[None, None, :] >= lo[..., None]) & (s[None, None, :] < hi[..., None])
+    w = w * inside
+    return w / w.sum(dim=-1, keepdim=True).clamp(min=1e-12)
+
+
+def structure(templates):
+    """Mean grey-level gradient magnitude per pixel, 0-255 (src/synth `template_structure`)."""
+    grey = 0.299 * templates[:, 0] + 0.587 * templates[:, 1] + 0.114 * templates[:, 2]
+    gx = grey[:, :-1, 1:] - grey[:, :-1, :-1]
+    gy = grey[:, 1:, :-1] - grey[:, :-1, :-1]
+    return 255.0 * (gx * gx + gy * gy).sqrt().mean(dim=(1, 2))
+
+
+def _photo_coords(truth_xy, angle_deg, centre, i, j):
+    """Photo position of window pixel (i, j): the box centre plus the window offset from the
+    object centre, unrotated (src/synth/sampler.rs `unrotate`)."""
+    a = torch.deg2rad(angle_deg)
+    s, c = torch.sin(a), torch.cos(a)
+    p = i - truth_xy[0]
+    q = j - truth_xy[1]
+    return centre[0] + p * c - q * s, centre[1] + p * s + q * c
+
+
+def cut_pairs(bank, batch, level="S1.5", template_size=(36, 36), search_side=224,
+              min_structure=DEFAULT_MIN_STRUCTURE, gen=None, max_rounds=50):
+    """`batch` pairs from `bank` (see the module doc). `level` is one level name or a list of
+    them (each pair draws one)."""
+    device = bank.device
+    tw, th = template_size
+    side = float(search_side)
+    levels = [level] if isinstance(level, str) else list(level)
+    ranges = torch.tensor([LEVELS[name] for name in levels], device=device)
+    kept = []
+    have = 0
+    for _ in range(max_rounds):
+        m = max(2 * (batch - have), 16)
+        photo = torch.randint(len(bank), (m,), generator=gen, device=device)
+        pw = bank.sizes[photo, 0].float()
+        ph = bank.sizes[photo, 1].float()
+        rng = ranges[torch.randint(len(levels), (m,), generator=gen, device=device)]
+        sx = rng[:, 0] + (rng[:, 1] - rng[:, 0]) * torch.rand(m, generator=gen, device=device)
+        sy = rng[:, 0] + (rng[:, 1] - rng[:, 0]) * torch.rand(m, generator=gen, device=device)
+        bw = torch.round(sx * tw).clamp(min=2.0)
+        bh = torch.round(sy * th).clamp(min=2.0)
+        ok = (bw + 2 <= pw) & (bh + 2 <= ph)
+        angle = _uniform(m, -180.0, 180.0, gen, device)
+        a = torch.deg2rad(angle)
+        ex = (bw * torch.cos(a).abs() + bh * torch.sin(a).abs()) / 2
+        ey = (bw * torch.sin(a).abs() + bh * torch.cos(a).abs()) / 2
+        ok &= (2 * ex + 2 <= side) & (2 * ey + 2 <= side)
+        x0 = torch.floor(torch.rand(m, generator=gen, device=device) * (pw - bw + 1)).clamp(min=0)
+        y0 = torch.floor(torch.rand(m, generator=gen, device=device) * (ph - bh + 1)).clamp(min=0)
+        x0 = torch.minimum(x0, (pw - bw).clamp(min=0))
+        y0 = torch.minimum(y0, (ph - bh).clamp(min=0))
+        centre = (x0 + (bw - 1) / 2, y0 + (bh - 1) / 2)
+        xc = ex + (side - 1 - 2 * ex) * torch.rand(m, generator=gen, device=device)
+        yc = ey + (side - 1 - 2 * ey) * torch.rand(m, generator=gen, device=device)
+        last = side - 1
+        for i, j in ((0.0, 0.0), (last, 0.0), (0.0, last), (last, last)):
+            px, py = _photo_coords((xc, yc), angle, centre, i, j)
+            ok &= (px >= 0) & (py >= 0) & (px <= pw - 1) & (py <= ph - 1)
+        idx = ok.nonzero().squeeze(1)
+        if idx.numel() == 0:
+            continue
+        photo, pw, ph, bw, bh, angle = photo[idx], pw[idx], ph[idx], bw[idx], bh[idx], angle[idx]
+        x0, y0, xc, yc = x0[idx], y0[idx], xc[idx], yc[idx]
+        sx, sy = bw / tw, bh / th
+        pixels = bank.pixels[photo].float() / 255.0  # [k, 3, Hmax, Wmax]
+        hmax, wmax = pixels.shape[-2:]
+        templates = _cut_templates(pixels, x0, y0, bw, bh, tw, th)
+        good = structure(templates) >= min_structure
+        if not good.any():
+            continue
+        sel = good.nonzero().squeeze(1)
+        pixels = pixels[sel]
+        templates = templates[sel]
+        photo, bw, bh, angle, x0, y0, xc, yc, sx, sy = (
+            t[sel] for t in (photo, bw, bh, angle, x0, y0, xc, yc, sx, sy))
+        cx, cy = x0 + (bw - 1) / 2, y0 + (bh - 1) / 2
+        grid_j, grid_i = torch.meshgrid(
+            torch.arange(search_side, device=device, dtype=torch.float32),
+            torch.arange(search_side, device=device, dtype=torch.float32), indexing="ij")
+        px, py = _photo_coords((xc[:, None, None], yc[:, None, None]), angle[:, None, None],
+                               (cx[:, None, None], cy[:, None, None]), grid_i, grid_j)
+        grid = torch.stack([px / (wmax - 1) * 2 - 1, py / (hmax - 1) * 2 - 1], dim=-1)
+        searches = F.grid_sample(pixels, grid, mode="bilinear", padding_mode="zeros",
+                                 align_corners=True)
+        truth = torch.stack([xc, yc, angle, sx, sy], dim=1)
+        boxes = torch.stack([x0, y0, bw, bh], dim=1)
+        kept.append((templates, searches, truth, boxes, photo))
+        have += templates.shape[0]
+        if have >= batch:
+            break
+    if have < batch:
+        raise RuntimeError(
+            f"could place only {have} of {batch} {tw}x{th} templates: use larger photos or "
+            "photos with more structure")
+    cat = [torch.cat(parts, 0)[:batch] for parts in zip(*kept)]
+    return Pairs(*cat)
+
+
+def _cut_templates(pixels, x0, y0, bw, bh, tw, th):
+    """Box (x0, y0, bw, bh) of each photo resized to tw x th (antialiased bilinear)."""
+    k = pixels.shape[0]
+    span_w = int(bw.max().item())
+    span_h = int(bh.max().item())
+    hmax, wmax = pixels.shape[-2:]
+    # The box's pixels (integer positions: grid_sample reads them exactly), zero beyond it.
+    jj, ii = torch.meshgrid(torch.arange(span_h, device=pixels.device, dtype=torch.float32),
+                            torch.arange(span_w, device=pixels.device, dtype=torch.float32),
+                            indexing="ij")
+    gx = (x0[:, None, None] + ii) / (wmax - 1) * 2 - 1
+    gy = (y0[:, None, None] + jj) / (hmax - 1) * 2 - 1
+    patch = F.grid_sample(pixels, torch.stack([gx, gy], -1), mode="nearest",
+                          padding_mode="zeros", align_corners=True)  # [k, 3, span_h, span_w]
+    wx = resize_weights(bw.long(), tw, span_w)  # [k, tw, span_w]
+    wy = resize_weights(bh.long(), th, span_h)  # [k, th, span_h]
+    # Horizontal pass then vertical, as the separable convolution does.
+    horizontal = torch.einsum("kchs,kos->kcho", patch, wx)
+    return torch.einsum("kcho,kph->kcpo", horizontal, wy)
+
+
+def jitter(searches, gen=None):
+    """src/train/jitter.rs: brightness ±0.1, contrast 0.7-1.3 about the mean, with probability
+    0.3 a [1 2 1]/4 blur (clamped borders), with probability 0.5 Gaussian noise of sigma up to
+    0.03; clamped to [0, 1]."""
+    b = searches.shape[0]
+    device = searches.device
+    brightness = _uniform(b, -0.1, 0.1, gen, device).view(b, 1, 1, 1)
+    contrast = _uniform(b, 0.7, 1.3, gen, device).view(b, 1, 1, 1)
+    mean = searches.mean(dim=(1, 2, 3), keepdim=True)
+    x = (searches - mean) * contrast + mean + brightness
+    blur = (torch.rand(b, generator=gen, device=device) < 0.3).view(b, 1, 1, 1)
+    kernel = torch.tensor([0.25, 0.5, 0.25], device=device, dtype=x.dtype)
+    c = x.shape[1]
+    blurred = F.conv2d(F.pad(x, (1, 1, 0, 0), mode="replicate"),
+                       kernel.view(1, 1, 1, 3).repeat(c, 1, 1, 1), groups=c)
+    blurred = F.conv2d(F.pad(blurred, (0, 0, 1, 1), mode="replicate"),
+                       kernel.view(1, 1, 3, 1).repeat(c, 1, 1, 1), groups=c)
+    x = torch.where(blur, blurred, x)
+    noisy = (torch.rand(b, generator=gen, device=device) < 0.5).view(b, 1, 1, 1)
+    sigma = _uniform(b, 0.0, 0.03, gen, device).view(b, 1, 1, 1)
+    noise = torch.randn(x.shape, generator=gen, device=device, dtype=x.dtype)
+    x = x + noisy * sigma * noise
+    return x.clamp(0.0, 1.0)
+
+
+def render_labels(truth, width, height, template_size=(36, 36)):
+    """src/train/labels.rs for one instance per image: [B, 6, H, W] = heatmap, valid, sign, cos,
+    scale_x, scale_y. The Gaussian is drawn only inside the same square window as there
+    (3.5 sigma x the larger scale), so the maps agree to rounding."""
+    device = truth.device
+    tw, th = template_size
+    sigma_u, sigma_v = tw * SIGMA_FRACTION, th * SIGMA_FRACTION
+    x, y, angle, sx, sy = (truth[:, k].view(-1, 1, 1) for k in range(5))
+    a = torch.deg2rad(angle)
+    s, c = torch.sin(a), torch.cos(a)
+    sxc, syc = sx.clamp(min=1e-3), sy.clamp(min=1e-3)
+    reach = 3.5 * max(sigma_u, sigma_v) * torch.maximum(sxc, syc)
+    jj, ii = torch.meshgrid(torch.arange(height, device=device, dtype=torch.float32),
+                            torch.arange(width, device=device, dtype=torch.float32),
+                            indexing="ij")
+    x0 = torch.floor(x - reach).clamp(min=0)
+    y0 = torch.floor(y - reach).clamp(min=0)
+    x1 = torch.ceil(x + reach).clamp(max=width - 1)
+    y1 = torch.ceil(y + reach).clamp(max=height - 1)
+    window = (ii >= x0) & (ii <= x1) & (jj >= y0) & (jj <= y1)
+    dx, dy = ii - x, jj - y
+    u = (c * dx - s * dy) / sxc
+    v = (s * dx + c * dy) / syc
+    g = torch.exp(-0.5 * ((u / sigma_u) ** 2 + (v / sigma_v) ** 2)) * window
+    valid = (g >= VALID_THRESHOLD).float()
+    sign = valid * (angle > 0).float()
+    cos = valid * c
+    return torch.stack([g, valid, sign, cos, valid * sx, valid * sy], dim=1)
+
+
+def losses(maps, labels, eps=1e-6):
+    """src/train/loss.rs: centre = BCE against the soft label inside the valid region and
+    -log(1 - p) outside, sign cross-entropy and L1 on cos and both scales inside it; each summed
+    and divided by the number of valid pixels. Returns (total, dict of terms)."""
+    maps = maps.float()
+    score, sign, cos, scale_x, scale_y = (maps[:, k:k + 1] for k in range(5))
+    heat, valid, t_sign, t_cos, t_sx, t_sy = (labels[:, k:k + 1] for k in range(6))
+    positives = valid.sum().clamp(min=1.0)
+    p = score.clamp(eps, 1 - eps)
+    bce = -(heat * p.log() + (1 - heat) * (1 - p).log())
+    negative = -(1 - p).log()
+    centre = (valid * bce + (1 - valid) * negative).sum() / positives
+    q = sign.clamp(eps, 1 - eps)
+    sign_ce = -(t_sign * q.log() + (1 - t_sign) * (1 - q).log())
+    sign_term = (valid * sign_ce).sum() / positives
+
+    def l1(pred, target):
+        return (valid * (pred - target).abs()).sum() / positives
+
+    terms = {"centre": centre, "sign": sign_term, "cos": l1(cos, t_cos),
+             "scale_x": l1(scale_x, t_sx), "scale_y": l1(scale_y, t_sy)}
+    return sum(terms.values()), terms
+
+
+def peak_hits(maps, truth, radius=3.0):
+    """Share of images whose score-map arg-max lies within `radius` px of the true centre."""
+    score = maps[:, 0]
+    b, h, w = score.shape
+    flat = score.reshape(b, -1).argmax(dim=1)
+    row = (flat // w).float()
+    col = (flat % w).float()
+    dist = torch.hypot(col - truth[:, 0], row - truth[:, 1])
+    return (dist <= radius).float().mean().item()
+
+
+def learning_rate(step, total, peak, warmup):
+    """Linear warm-up, then cosine from `peak` down to 5 % of it (as src/train)."""
+    if step < warmup:
+        return peak * (step + 1) / warmup
+    progress = min(1.0, (step - warmup) / max(1, total - warmup))
+    return peak * (0.05 + 0.95 * 0.5 * (1.0 + math.cos(math.pi * progress)))

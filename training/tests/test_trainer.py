@@ -1,0 +1,154 @@
+"""The trainer's own checks: pair geometry exact against a pure-numpy warp, templates against
+PIL's antialiased resize, labels against the formula, a short CPU run whose loss falls, and
+export -> reload. Run: `python3 -m pytest training/tests -q` (needs torch, numpy, pillow)."""
+
+import math
+import sys
+from pathlib import Path
+
+import numpy as np
+import pytest
+import torch
+from PIL import Image
+
+sys.path.insert(0, str(Path(__file__).resolve().parents[1]))
+import pairs as P  # noqa: E402
+import train as T  # noqa: E402
+from tdcm import Tdcm, normalise  # noqa: E402
+
+
+def textured_photo(width, height, seed):
+    """A photo with structure at several scales (no flat areas)."""
+    rng = np.random.default_rng(seed)
+    y, x = np.mgrid[0:height, 0:width].astype(np.float64)
+    image = np.zeros((height, width, 3))
+    for c in range(3):
+        for _ in range(6):
+            fx, fy = rng.uniform(-0.5, 0.5, 2)
+            phase = rng.uniform(0, 2 * math.pi)
+            image[..., c] += np.sin(fx * x + fy * y + phase) * rng.uniform(0.2, 1.0)
+    image += rng.normal(0, 0.15, image.shape)
+    image = (image - image.min()) / (image.max() - image.min())
+    return (image * 255).round().astype(np.uint8)
+
+
+@pytest.fixture(scope="module")
+def bank():
+    photos = [textured_photo(300, 260, 1), textured_photo(260, 320, 2), textured_photo(400, 300, 3)]
+    return photos, P.PhotoBank(photos, "cpu")
+
+
+def numpy_bilinear(photo, x, y):
+    """src/synth/sampler.rs `bilinear` in float64."""
+    h, w = photo.shape[:2]
+    x0, y0 = int(math.floor(x)), int(math.floor(y))
+    x1, y1 = min(x0 + 1, w - 1), min(y0 + 1, h - 1)
+    fx, fy = x - x0, y - y0
+    p = photo.astype(np.float64) / 255.0
+    top = p[y0, x0] * (1 - fx) + p[y0, x1] * fx
+    bottom = p[y1, x0] * (1 - fx) + p[y1, x1] * fx
+    return top * (1 - fy) + bottom * fy
+
+
+def test_search_windows_match_a_numpy_warp(bank):
+    photos, b = bank
+    gen = torch.Generator().manual_seed(7)
+    pairs = P.cut_pairs(b, 6, "S2", search_side=96, gen=gen)
+    rng = np.random.default_rng(0)
+    for k in range(6):
+        photo = photos[int(pairs.photos[k])]
+        x, y, angle, sx, sy = pairs.truth[k].double().tolist()
+        x0, y0, bw, bh = pairs.boxes[k].double().tolist()
+        assert abs(sx - bw / 36) < 1e-6 and abs(sy - bh / 36) < 1e-6
+        cx, cy = x0 + (bw - 1) / 2, y0 + (bh - 1) / 2
+        s, c = math.sin(math.radians(angle)), math.cos(math.radians(angle))
+        for i, j in [(0, 0), (95, 95), (0, 95), (95, 0)] + [tuple(rng.integers(0, 96, 2)) for _ in range(40)]:
+            p, q = i - x, j - y
+            expected = numpy_bilinear(photo, cx + p * c - q * s, cy + p * s + q * c)
+            actual = pairs.searches[k, :, j, i].double().numpy()
+            np.testing.assert_allclose(actual, expected, atol=2e-5)
+        # The object's centre shows the box centre: the pose maps the template centre there.
+        centre = pairs.searches[k, :, int(round(y)), int(round(x))]
+        assert torch.isfinite(centre).all()
+
+
+def test_templates_match_pils_antialiased_resize(bank):
+    photos, b = bank
+    gen = torch.Generator().manual_seed(3)
+    pairs = P.cut_pairs(b, 8, "S2.5", search_side=160, gen=gen)
+    for k in range(8):
+        photo = photos[int(pairs.photos[k])].astype(np.float32) / 255.0
+        x0, y0, bw, bh = (int(v) for v in pairs.boxes[k].tolist())
+        crop = photo[y0:y0 + bh, x0:x0 + bw]
+        for c in range(3):
+            expected = np.asarray(Image.fromarray(crop[..., c], mode="F").resize((36, 36), Image.BILINEAR))
+            np.testing.assert_allclose(pairs.templates[k, c].numpy(), expected, atol=1e-4)
+        assert P.structure(pairs.templates[k:k + 1]).item() >= P.DEFAULT_MIN_STRUCTURE
+
+
+def test_labels_follow_the_pose():
+    truth = torch.tensor([[20.0, 30.0, -120.0, 1.3, 0.8], [32.0, 32.0, 90.0, 2.0, 1.0]])
+    maps = P.render_labels(truth, 64, 64)
+    heat, valid, sign, cos, sx, sy = maps[0]
+    assert heat[30, 20] == 1.0
+    assert valid.sum() > 20
+    inside = valid > 0
+    assert (heat[inside] >= 0.5).all() and (heat[~inside] < 0.5).all()
+    assert (sign[inside] == 0).all()
+    assert torch.allclose(cos[inside], torch.tensor(-0.5), atol=1e-6)
+    assert (sx[inside] == 1.3).all() and (sy[inside] == 0.8).all()
+    # +90°, sx = 2: the object's x axis points up, so the Gaussian is long in y (sigma 12 vs 6).
+    heat = maps[1, 0]
+    assert abs(heat[44, 32].item() - math.exp(-0.5)) < 1e-3
+    assert abs(heat[32, 44].item() - math.exp(-2.0)) < 1e-3
+    assert maps[1, 2, 32, 32] == 1.0
+
+
+def test_a_short_cpu_run_lowers_the_loss(bank, tmp_path):
+    photos, _ = bank
+    corpus = tmp_path / "corpus"
+    corpus.mkdir()
+    for i in range(5):
+        Image.fromarray(textured_photo(260, 240, 10 + i)).save(corpus / f"p{i}.png")
+    out = tmp_path / "run"
+    common = ["--corpus", str(corpus), "--batch", "4", "--search-size", "64", "--warmup", "10",
+              "--validation-pairs", "8", "--device", "cpu", "--minutes", "10"]
+    # 100 steps on one batch: the network and the losses can fit it.
+    fit = tmp_path / "fit"
+    args = T.parse_args(common + ["--out", str(fit), "--steps", "100", "--lr", "2e-3",
+                                  "--log-every", "10", "--validate-every", "1000",
+                                  "--overfit-one-batch"])
+    assert T.train(args) == 100
+    log = (fit / "log.txt").read_text().splitlines()
+    losses = [float(line.split(" loss ")[1].split()[0]) for line in log if line.startswith("step ") and " loss " in line]
+    assert len(losses) == 10
+    # Mean loss of the last ten steps against the first ten.
+    assert losses[-1] < 0.6 * losses[0], losses
+    # A bounded run on fresh pairs, then resumed: the step count and the schedule continue.
+    args = T.parse_args(common + ["--out", str(out), "--steps", "30", "--log-every", "10",
+                                  "--validate-every", "10"])
+    assert T.train(args) == 30
+    args = T.parse_args(common + ["--out", str(out), "--steps", "40", "--log-every", "5", "--resume"])
+    assert T.train(args) == 40
+    log = (out / "log.txt").read_text()
+    assert "resumed at step 30 (120 pairs seen)" in log and "step 40/40" in log
+
+
+def test_export_round_trip(tmp_path):
+    torch.manual_seed(0)
+    model = Tdcm().eval()
+    path = tmp_path / "weights.pth"
+    T.export_weights(model, path)
+    state = torch.load(path, weights_only=True)
+    official = (Path(__file__).resolve().parents[2] / "../shared/reference/tdcm-official-keys.txt").resolve()
+    if official.is_file():
+        keys = {line.split("\t")[0]: line.split("\t")[1] for line in official.read_text().splitlines() if line}
+        assert set(keys) == set(state)
+        for name, shape in keys.items():
+            assert list(state[name].shape) == eval(shape), name
+    again = Tdcm().eval()
+    again.load_state_dict(state)
+    t = normalise(torch.rand(2, 3, 36, 36))
+    s = normalise(torch.rand(2, 3, 64, 64))
+    with torch.no_grad():
+        assert torch.equal(model(t, s), again(t, s))

@@ -1,0 +1,253 @@
+"""Trains the TDCM network from random initialisation on pairs cut on the device.
+
+A run is bounded (`--minutes`) and resumable: it ends cleanly, writing `checkpoint.pt`
+(weights, optimizer, step, generator states; a few MiB) and `weights.pth` (the state dict alone,
+which `posematch weights import` reads) atomically into `--out`; `--resume` continues from
+there with the same schedule. See training/README.md for the whole sequence.
+
+    python3 training/train.py --corpus data/corpus --out data/run --steps 20000 --minutes 8
+"""
+
+import argparse
+import math
+import os
+import sys
+import time
+from pathlib import Path
+
+import numpy as np
+import torch
+
+sys.path.insert(0, str(Path(__file__).resolve().parent))
+import pairs as P  # noqa: E402
+from tdcm import Tdcm, normalise  # noqa: E402
+
+MAX_PHOTO_SIDE = 640
+IMAGE_SUFFIXES = {".jpg", ".jpeg", ".png", ".webp", ".bmp", ".tif", ".tiff"}
+
+
+def load_photos(folder, max_side=MAX_PHOTO_SIDE):
+    """Every decodable image under `folder`, sorted by path, RGB uint8, at most `max_side`."""
+    from PIL import Image
+
+    files = sorted(p for p in Path(folder).rglob("*") if p.suffix.lower() in IMAGE_SUFFIXES)
+    photos, names = [], []
+    for path in files:
+        try:
+            with Image.open(path) as im:
+                im = im.convert("RGB")
+                scale = max_side / max(im.size)
+                if scale < 1:
+                    size = (max(1, round(im.width * scale)), max(1, round(im.height * scale)))
+                    im = im.resize(size, Image.BILINEAR, reducing_gap=None)
+                photos.append(np.asarray(im, dtype=np.uint8).copy())
+                names.append(str(path))
+        except Exception as error:  # a broken file is skipped, not fatal
+            print(f"skipping {path}: {error}", file=sys.stderr)
+    return photos, names
+
+
+def split(photos, names, every=10):
+    """Every `every`-th photo (by path) is held out for the progress check (the last one when
+    there are fewer)."""
+    held_out = {i for i in range(len(photos)) if i % every == every - 1} or {len(photos) - 1}
+    if len(photos) < 2:
+        return photos, []
+    train = [p for i, p in enumerate(photos) if i not in held_out]
+    held = [p for i, p in enumerate(photos) if i in held_out]
+    return train, held
+
+
+def atomic_save(obj, path):
+    tmp = Path(str(path) + ".tmp")
+    torch.save(obj, tmp)
+    with open(tmp, "rb") as f:
+        os.fsync(f.fileno())
+    os.replace(tmp, path)
+
+
+def export_weights(model, path):
+    """The state dict alone, float32 on the CPU, with the official key names."""
+    state = {k: v.detach().to("cpu", copy=True) for k, v in model.state_dict().items()}
+    state = {k: (v.float() if v.is_floating_point() else v) for k, v in state.items()}
+    atomic_save(state, path)
+
+
+def parse_args(argv=None):
+    a = argparse.ArgumentParser(description=__doc__, formatter_class=argparse.RawDescriptionHelpFormatter)
+    a.add_argument("--corpus", required=True, help="folder of training photos")
+    a.add_argument("--validation", help="folder of held-out photos (default: every 10th corpus photo)")
+    a.add_argument("--out", required=True, help="run folder: checkpoint.pt, weights.pth, log.txt")
+    a.add_argument("--resume", action="store_true", help="continue from --out/checkpoint.pt")
+    a.add_argument("--steps", type=int, default=20000, help="steps of the whole schedule (all runs)")
+    a.add_argument("--minutes", type=float, default=8.0, help="stop this run after this many minutes")
+    a.add_argument("--batch", type=int, default=64)
+    a.add_argument("--search-size", type=int, default=224)
+    a.add_argument("--level", default="S1.5", help="level or comma list (S1, S1.5, S2, S2.5)")
+    a.add_argument("--lr", type=float, default=1e-3)
+    a.add_argument("--weight-decay", type=float, default=0.05)
+    a.add_argument("--warmup", type=int, default=500)
+    a.add_argument("--seed", type=int, default=0)
+    a.add_argument("--device", default="cuda" if torch.cuda.is_available() else "cpu")
+    a.add_argument("--no-bf16", action="store_true", help="float32 throughout (default bf16 autocast on CUDA)")
+    a.add_argument("--compile", action="store_true", help="torch.compile the model")
+    a.add_argument("--log-every", type=int, default=100)
+    a.add_argument("--validate-every", type=int, default=1000)
+    a.add_argument("--validation-pairs", type=int, default=256)
+    a.add_argument("--overfit-one-batch", action="store_true",
+                   help="train on one fixed batch (a check that the network and losses can fit)")
+    a.add_argument("--threads", type=int, default=0, help="CPU threads (0: torch's default)")
+    args = a.parse_args(argv)
+    if args.batch < 1 or args.steps < 1 or args.minutes <= 0:
+        a.error("--batch, --steps and --minutes must be positive")
+    if args.search_size % 4 or not 64 <= args.search_size <= 1024:
+        a.error("--search-size must be a multiple of 4 in 64..1024")
+    for name in args.level.split(","):
+        if name not in P.LEVELS:
+            a.error(f"unknown level {name}: use S1, S1.5, S2 or S2.5")
+    return args
+
+
+def train(args):
+    started = time.monotonic()
+    if args.threads:
+        torch.set_num_threads(args.threads)
+    device = torch.device(args.device)
+    out = Path(args.out)
+    out.mkdir(parents=True, exist_ok=True)
+    log = open(out / "log.txt", "a", buffering=1)
+
+    def say(line):
+        print(line, flush=True)
+        log.write(line + "\n")
+
+    photos, names = load_photos(args.corpus)
+    if args.validation:
+        train_photos = photos
+        held_photos, _ = load_photos(args.validation)
+    else:
+        train_photos, held_photos = split(photos, names)
+    if not train_photos or not held_photos:
+        raise SystemExit(f"{args.corpus}: need photos for training and for the progress check")
+    bank = P.PhotoBank(train_photos, device)
+    held_bank = P.PhotoBank(held_photos, device)
+    levels = args.level.split(",")
+
+    torch.manual_seed(args.seed)
+    model = Tdcm().to(device)
+    use_bf16 = device.type == "cuda" and not args.no_bf16
+    if device.type == "cuda":
+        model = model.to(memory_format=torch.channels_last)
+        torch.backends.cudnn.benchmark = True
+        torch.backends.cuda.matmul.allow_tf32 = True
+        torch.backends.cudnn.allow_tf32 = True
+    fused = device.type == "cuda"
+    optimizer = torch.optim.AdamW(model.parameters(), lr=args.lr, weight_decay=args.weight_decay,
+                                  fused=fused)
+    gen = torch.Generator(device=device)
+    gen.manual_seed(args.seed * 1_000_003 + 1)
+    step = 0
+    pairs_seen = 0
+    checkpoint = out / "checkpoint.pt"
+    if args.resume:
+        if not checkpoint.is_file():
+            raise SystemExit(f"--resume: {checkpoint} does not exist")
+        state = torch.load(checkpoint, map_location=device, weights_only=False)
+        model.load_state_dict(state["model"])
+        optimizer.load_state_dict(state["optimizer"])
+        step, pairs_seen = state["step"], state["pairs_seen"]
+        gen.set_state(state["generator"].to("cpu") if device.type == "cpu" else state["generator"].cpu())
+        torch.set_rng_state(state["torch_rng"].cpu())
+        if device.type == "cuda" and state.get("cuda_rng") is not None:
+            torch.cuda.set_rng_state(state["cuda_rng"].cpu())
+        say(f"resumed at step {step} ({pairs_seen} pairs seen)")
+    else:
+        say(f"from random initialisation (seed {args.seed}); {len(train_photos)} training photos, "
+            f"{len(held_photos)} held out")
+    forward = torch.compile(model) if args.compile else model
+
+    # A fixed progress-check set from the held-out photos.
+    held_gen = torch.Generator(device=device)
+    held_gen.manual_seed(12345)
+    with torch.no_grad():
+        held = P.cut_pairs(held_bank, args.validation_pairs, levels, search_side=args.search_size,
+                          gen=held_gen)
+
+    def check():
+        model.eval()
+        hits = []
+        with torch.no_grad(), torch.autocast(device.type, dtype=torch.bfloat16, enabled=use_bf16):
+            for i in range(0, held.templates.shape[0], 64):
+                maps = model(normalise(held.templates[i:i + 64]), normalise(held.searches[i:i + 64]))
+                hits.append(P.peak_hits(maps.float(), held.truth[i:i + 64]) * maps.shape[0])
+        model.train()
+        return sum(hits) / held.templates.shape[0]
+
+    def save():
+        atomic_save({
+            "model": model.state_dict(), "optimizer": optimizer.state_dict(), "step": step,
+            "pairs_seen": pairs_seen, "generator": gen.get_state(),
+            "torch_rng": torch.get_rng_state(),
+            "cuda_rng": torch.cuda.get_rng_state() if device.type == "cuda" else None,
+            "args": vars(args),
+        }, checkpoint)
+        export_weights(model, out / "weights.pth")
+
+    model.train()
+    window_start, window_pairs = time.monotonic(), 0
+    window_loss, window_steps = 0.0, 0
+    deadline = started + args.minutes * 60
+    fixed = None
+    while step < args.steps and time.monotonic() < deadline:
+        lr = P.learning_rate(step, args.steps, args.lr, args.warmup)
+        for group in optimizer.param_groups:
+            group["lr"] = lr
+        if fixed is None:
+            with torch.no_grad():
+                batch = P.cut_pairs(bank, args.batch, levels, search_side=args.search_size, gen=gen)
+                searches = P.jitter(batch.searches, gen)
+                labels = P.render_labels(batch.truth, args.search_size, args.search_size)
+                templates = normalise(batch.templates)
+                searches = normalise(searches)
+                if device.type == "cuda":
+                    templates = templates.contiguous(memory_format=torch.channels_last)
+                    searches = searches.contiguous(memory_format=torch.channels_last)
+            if args.overfit_one_batch:
+                fixed = (templates, searches, labels)
+        else:
+            templates, searches, labels = fixed
+        with torch.autocast(device.type, dtype=torch.bfloat16, enabled=use_bf16):
+            maps = forward(templates, searches)
+        loss, terms = P.losses(maps, labels)
+        if not torch.isfinite(loss):
+            raise SystemExit(f"step {step}: the loss is not finite ({loss.item()}); lower --lr")
+        optimizer.zero_grad(set_to_none=True)
+        loss.backward()
+        torch.nn.utils.clip_grad_norm_(model.parameters(), 5.0)
+        optimizer.step()
+        step += 1
+        pairs_seen += args.batch
+        window_pairs += args.batch
+        window_loss = window_loss + loss.detach()
+        window_steps += 1
+        if step % args.log_every == 0 or step == args.steps:
+            now = time.monotonic()
+            rate = window_pairs / (now - window_start)
+            window_start, window_pairs = now, 0
+            parts = " ".join(f"{k} {v.item():.3f}" for k, v in terms.items())
+            mean_loss = (window_loss / window_steps).item()
+            window_loss, window_steps = 0.0, 0
+            # loss: mean over the steps since the last line; the terms: this step's.
+            say(f"step {step}/{args.steps} loss {mean_loss:.4f} ({parts}) lr {lr:.2e} "
+                f"{rate:.0f} pairs/s, {pairs_seen} pairs, {(now - started) / 60:.1f} min")
+        if step % args.validate_every == 0:
+            say(f"step {step}: held-out peak within 3 px: {100 * check():.1f} % "
+                f"({held.templates.shape[0]} pairs)")
+    save()
+    say(f"stopped at step {step} ({pairs_seen} pairs seen) after {(time.monotonic() - started) / 60:.1f} min; "
+        f"held-out peak within 3 px: {100 * check():.1f} %; wrote {checkpoint} and {out / 'weights.pth'}")
+    return step
+
+
+if __name__ == "__main__":
+    train(parse_args())
