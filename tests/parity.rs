@@ -15,6 +15,11 @@ fn reference_dir() -> Option<PathBuf> {
     if dir.join("tdcm-parity.safetensors").is_file() {
         Some(dir)
     } else {
+        assert!(
+            std::env::var_os("POSEMATCH_REQUIRE_REFERENCE").is_none(),
+            "{} is required here (POSEMATCH_REQUIRE_REFERENCE is set): put the reference files beside the checkout",
+            dir.display()
+        );
         eprintln!(
             "SKIPPED: {} is absent, so parity with the official checkpoint cannot be checked",
             dir.display()

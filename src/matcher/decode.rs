@@ -28,9 +28,6 @@ pub struct NetworkPeak {
     pub scale_x: f32,
     pub scale_y: f32,
     pub score: f32,
-    /// Integer peak position, for bookkeeping (tile ownership).
-    pub peak_col: usize,
-    pub peak_row: usize,
 }
 
 /// Largest radius (network pixels) of the neighbourhood averaged around a peak, as in the
@@ -108,8 +105,6 @@ pub fn decode_peak(planes: &MapPlanes, row: usize, col: usize) -> NetworkPeak {
         scale_x: planes.scale_x[i],
         scale_y: planes.scale_y[i],
         score: peak_score,
-        peak_col: col,
-        peak_row: row,
     }
 }
 

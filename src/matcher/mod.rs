@@ -144,11 +144,6 @@ impl Matcher {
         self
     }
 
-    pub fn with_max_batch(mut self, max_batch: usize) -> Self {
-        self.max_batch = max_batch.max(1);
-        self
-    }
-
     pub fn device(&self) -> &Device {
         &self.device
     }

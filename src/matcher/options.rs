@@ -1,8 +1,6 @@
 //! What a caller may ask of one match, with defaults and validation shared by the CLI and the
 //! service.
 
-use crate::geometry::wrap_angle_deg;
-
 /// Restricts answers to angles in `[start, start + extent]` (degrees, counter-clockwise).
 #[derive(Debug, Clone, Copy, PartialEq)]
 pub struct AngleRange {
@@ -40,11 +38,6 @@ impl AngleRange {
         }
         let offset = (angle_deg - self.start_deg + margin_deg).rem_euclid(360.0);
         offset <= self.extent_deg + 2.0 * margin_deg + 1e-4
-    }
-
-    /// The middle of the range in (−180, 180].
-    pub fn centre_deg(&self) -> f32 {
-        wrap_angle_deg(self.start_deg + self.extent_deg / 2.0)
     }
 }
 

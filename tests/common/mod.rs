@@ -9,12 +9,19 @@ use rand::rngs::StdRng;
 use rand::{Rng, SeedableRng};
 use safetensors::SafeTensors;
 
-/// `../shared/reference`, or None (with a printed reason) when it is absent.
+/// `../shared/reference`, or None (with a printed reason) when it is absent. Where
+/// `POSEMATCH_REQUIRE_REFERENCE` is set (CI, which always has the files: `.ci/run`), absence is
+/// a failure, not a skip.
 pub fn reference_dir() -> Option<PathBuf> {
     let dir = PathBuf::from(env!("CARGO_MANIFEST_DIR")).join("../shared/reference");
     if dir.join("tdcm-parity.safetensors").is_file() && dir.join("tdcm-official.pth").is_file() {
         Some(dir)
     } else {
+        assert!(
+            std::env::var_os("POSEMATCH_REQUIRE_REFERENCE").is_none(),
+            "{} is required here (POSEMATCH_REQUIRE_REFERENCE is set): put the reference files beside the checkout",
+            dir.display()
+        );
         eprintln!(
             "SKIPPED: {} is absent, so tests against the official checkpoint cannot run",
             dir.display()
