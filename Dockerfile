@@ -10,13 +10,14 @@ COPY Cargo.toml Cargo.lock build.rs ./
 COPY proto proto
 RUN mkdir -p src benches \
  && echo 'fn main() {}' > src/main.rs && echo '' > src/lib.rs \
- && for b in network load templates; do echo 'fn main() {}' > benches/$b.rs; done \
+ && for b in network load templates verification; do echo 'fn main() {}' > benches/$b.rs; done \
  && cargo build --release --locked --bin posematch \
  && rm -rf src benches
 COPY src src
 COPY benches benches
-# The default weights are compiled into the binary (include_bytes!).
+# The default weights and settings are compiled into the binary (include_bytes!, include_str!).
 COPY models models
+COPY deploy/posematch.toml deploy/posematch.toml
 RUN touch src/main.rs src/lib.rs && cargo build --release --locked --bin posematch
 
 FROM debian:bookworm-slim

@@ -2,8 +2,11 @@
 //! pose (centre, rotation, two scales, score), using the TDCM network.
 //!
 //! Layers, lowest first: [`model`] (burn network, weights), [`imaging`] (decode, normalise,
-//! resize), [`geometry`] (pose convention, rotated boxes), [`matcher`] (images in, poses out),
-//! [`engine`] (template registry, batching model thread), [`service`] (gRPC) and [`cli`] on top.
+//! resize), [`geometry`] (pose convention, rotated boxes), [`refine`] (refinement and
+//! verification on the image), [`matcher`] (images in, poses out), [`engine`] (template
+//! registry, batching model thread), [`service`] (gRPC) and [`cli`] on top. Beside them:
+//! [`synth`] (pairs with known truth), [`evaluation`] (the paper's metrics) and [`train`]
+//! (training on the CPU).
 
 pub mod cli;
 pub mod engine;
