@@ -241,7 +241,7 @@ fn malformed_input_fails_with_one_clear_line() {
             args.extend(["--weights", w.as_str()]);
         }
         let (code, stdout, stderr) = posematch(&args);
-        assert_ne!(code, 0, "{template} / {image} should fail");
+        assert_eq!(code, 1, "{template} / {image}: bad input exits 1: {stderr}");
         assert!(stdout.is_empty(), "{stdout}");
         assert!(
             !stderr.contains("panicked"),
@@ -258,7 +258,7 @@ fn malformed_input_fails_with_one_clear_line() {
         );
     }
 
-    // Missing weights and bad options are usage errors (exit 2).
+    // Missing weights are bad input (exit 1), bad options wrong usage (exit 2).
     let (t, i) = (
         good_template.to_str().unwrap(),
         good_image.to_str().unwrap(),
@@ -272,7 +272,7 @@ fn malformed_input_fails_with_one_clear_line() {
         "--weights",
         "/nonexistent.pth",
     ]);
-    assert_ne!(code, 0);
+    assert_eq!(code, 1, "{stderr}");
     assert!(stderr.contains("no such file"), "{stderr}");
     let (code, _, stderr) =
         posematch(&["match", "--template", t, "--image", i, "--min-score", "7"]);
@@ -329,4 +329,35 @@ fn crc32(data: &[u8]) -> u32 {
         }
     }
     !crc
+}
+
+/// `posematch serve` fails with the documented exit status: 2 for an invalid setting, 1 for
+/// missing weights, 3 when it cannot bind its address.
+#[test]
+fn serve_failures_exit_with_the_documented_status() {
+    let dir = tempfile::tempdir().unwrap();
+    let templates = dir.path().join("templates");
+    let templates = templates.to_str().unwrap();
+    let serve = |extra: &[&str]| {
+        let mut args = vec![
+            "serve",
+            "--template-dir",
+            templates,
+            "--metrics-listen",
+            "127.0.0.1:0",
+        ];
+        args.extend_from_slice(extra);
+        posematch(&args)
+    };
+    let (code, _, stderr) = serve(&["--listen", "nowhere"]);
+    assert_eq!(code, 2, "{stderr}");
+    assert!(stderr.contains("listen"), "{stderr}");
+    let (code, _, stderr) = serve(&["--listen", "127.0.0.1:0", "--weights", "/nonexistent.bpk"]);
+    assert_eq!(code, 1, "{stderr}");
+    assert!(stderr.contains("/nonexistent.bpk"), "{stderr}");
+    let taken = std::net::TcpListener::bind("127.0.0.1:0").unwrap();
+    let address = taken.local_addr().unwrap().to_string();
+    let (code, _, stderr) = serve(&["--listen", &address]);
+    assert_eq!(code, 3, "{stderr}");
+    assert!(!stderr.contains("panicked"), "{stderr}");
 }

@@ -97,7 +97,7 @@ pub fn run(args: EvalArgs) -> Result<(), CliError> {
     }
     let search_side = if args.multi_instance { 320 } else { 224 };
     let photos =
-        PhotoSet::load(&args.images, search_side).map_err(|e| CliError::Usage(e.to_string()))?;
+        PhotoSet::load(&args.images, search_side).map_err(|e| CliError::Input(e.to_string()))?;
     let matcher = match args.method {
         super::Method::Tdcm => Some(load_model(&args.model)?),
         super::Method::Ncc => None,
@@ -151,7 +151,7 @@ pub fn run(args: EvalArgs) -> Result<(), CliError> {
         } else {
             make_pair(&photos, &spec, args.seed, index)
         }
-        .map_err(|e| CliError::Usage(e.to_string()))?;
+        .map_err(|e| CliError::Input(e.to_string()))?;
         if let Some(saver) = saver.as_mut() {
             saver.save(index, &pair)?;
         }

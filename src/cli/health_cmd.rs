@@ -33,7 +33,7 @@ pub fn run(args: HealthArgs) -> Result<(), CliError> {
     let runtime = tokio::runtime::Builder::new_current_thread()
         .enable_all()
         .build()
-        .map_err(|e| CliError::Usage(format!("cannot start the async runtime: {e}")))?;
+        .map_err(|e| CliError::Runtime(format!("cannot start the async runtime: {e}")))?;
     let unhealthy = |m: String| CliError::Unhealthy(format!("{}: {m}", args.addr));
     let status = runtime.block_on(async {
         let endpoint = tonic::transport::Endpoint::from_shared(format!("http://{}", args.addr))

@@ -124,8 +124,16 @@ pub enum CliError {
         #[source]
         source: std::io::Error,
     },
+    /// An option, flag, setting or environment value is invalid.
     #[error("{0}")]
     Usage(String),
+    /// An input (image, weights, photos, pairs file) is missing, unreadable or invalid.
+    #[error("{0}")]
+    Input(String),
+    /// The service or a training run failed while running (address in use, model thread,
+    /// checkpoint write).
+    #[error("{0}")]
+    Runtime(String),
     #[error("unhealthy: {0}")]
     Unhealthy(String),
 }
@@ -138,11 +146,19 @@ impl CliError {
         }
     }
 
-    /// Exit status: 2 for wrong usage, 1 for everything else.
+    /// Exit status (README "Exit status"): 2 wrong usage (options, settings, `BURN_DEVICE`),
+    /// 1 bad input (files, weights, photos) and "not serving" from `posematch health` (Docker
+    /// reads 1 as unhealthy and reserves 2), 3 a failure while running.
     pub fn exit_code(&self) -> i32 {
         match self {
-            Self::Usage(_) => 2,
-            _ => 1,
+            Self::Usage(_) | Self::Device(_) => 2,
+            Self::Decode(_)
+            | Self::Match(_)
+            | Self::Weights(_)
+            | Self::Io { .. }
+            | Self::Input(_)
+            | Self::Unhealthy(_) => 1,
+            Self::Runtime(_) => 3,
         }
     }
 }

@@ -46,15 +46,15 @@ pub fn run(args: ServeArgs) -> Result<(), CliError> {
         .enable_all()
         .thread_name("posematch-rpc")
         .build()
-        .map_err(|e| CliError::Usage(format!("cannot start the async runtime: {e}")))?;
+        .map_err(|e| CliError::Runtime(format!("cannot start the async runtime: {e}")))?;
     runtime.block_on(async {
         let mut server = RunningServer::start(&settings, loader)
             .await
-            .map_err(|e| CliError::Usage(e.to_string()))?;
+            .map_err(|e| CliError::Runtime(e.to_string()))?;
         let outcome = tokio::select! {
             ready = server.ready() => match ready {
                 Ok(()) => None,
-                Err(message) => Some(Err(CliError::Usage(message))),
+                Err(message) => Some(Err(CliError::Runtime(message))),
             },
             _ = shutdown_signal() => Some(Ok(())),
         };
@@ -80,7 +80,7 @@ fn model_loader(settings: &Settings) -> Result<ModelLoader, CliError> {
     if let Some(path) = &weights
         && !path.is_file()
     {
-        return Err(CliError::Usage(format!(
+        return Err(CliError::Input(format!(
             "weights file {} does not exist",
             path.display()
         )));

@@ -168,7 +168,10 @@ pub fn run(args: TrainArgs) -> Result<(), CliError> {
     bar.finish();
     let outcome = outcome.map_err(|e| match e {
         TrainError::Options(m) => CliError::Usage(m),
-        other => CliError::Usage(other.to_string()),
+        e @ (TrainError::Photos(_) | TrainError::Weights(_)) => CliError::Input(e.to_string()),
+        e @ (TrainError::Checkpoint { .. } | TrainError::Validation(_)) => {
+            CliError::Runtime(e.to_string())
+        }
     })?;
     eprintln!(
         "{} steps in {:.1} min; loss {:.3} -> {:.3}; weights in {}",
