@@ -654,7 +654,17 @@ async fn an_expired_deadline_is_answered_and_never_reaches_the_model() {
             tokio::spawn(async move { client.r#match(request).await })
         })
         .collect();
-    tokio::time::sleep(Duration::from_millis(50)).await;
+    // Wait (polling, no guessed sleep) until one busy request runs and the other waits, so the
+    // hurried one queues behind it.
+    let mut waiting = 0.0;
+    for _ in 0..2000 {
+        waiting = counter(&metrics_text(&server).await, "posematch_queue_depth", "");
+        if waiting >= 1.0 {
+            break;
+        }
+        tokio::time::sleep(Duration::from_millis(5)).await;
+    }
+    assert!(waiting >= 1.0, "the busy requests never queued");
     let mut hurried = tonic::Request::new(match_request("t", png(&scene(128, 128, 1)), "hurried"));
     hurried.set_timeout(Duration::from_millis(100));
     let status = client.r#match(hurried).await.unwrap_err();
