@@ -112,8 +112,6 @@ pub struct Matcher {
     model: Tdcm,
     device: Device,
     convention: InputConvention,
-    /// Most network pieces in one forward pass.
-    max_batch: usize,
     /// Network inputs up to this many pixels run whole; larger ones are tiled.
     max_whole_pixels: usize,
 }
@@ -132,7 +130,6 @@ impl Matcher {
             model,
             device,
             convention,
-            max_batch: 4,
             max_whole_pixels: plan::MAX_WHOLE_PIXELS,
         }
     }
@@ -213,9 +210,11 @@ impl Matcher {
         for group in pieces
             .chunk_by(|a, b| (a.input.width, a.input.height) == (b.input.width, b.input.height))
         {
-            // Large tiles go one at a time so memory stays bounded; small images batch.
+            // One forward holds at most MAX_WHOLE_PIXELS network pixels (bounded memory): large
+            // tiles go one at a time, small images together. How many jobs come at once is the
+            // caller's choice (the service's `max_batch_size`), not limited again here.
             let pixels = group[0].input.width as usize * group[0].input.height as usize;
-            let per_batch = (plan::MAX_WHOLE_PIXELS / pixels).clamp(1, self.max_batch);
+            let per_batch = (plan::MAX_WHOLE_PIXELS / pixels).max(1);
             for batch in group.chunks(per_batch) {
                 let t = Instant::now();
                 let planes = self.run_network(jobs, batch);
