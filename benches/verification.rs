@@ -17,13 +17,12 @@ use std::time::{Duration, Instant};
 static ALLOCATOR: mimalloc::MiMalloc = mimalloc::MiMalloc;
 
 use criterion::{Criterion, Throughput, criterion_group, criterion_main};
-use posematch::cli::{DEFAULT_WEIGHTS, DEFAULT_WEIGHTS_NAME};
 use posematch::evaluation::{SUCCESS_IOU, pair_error};
 use posematch::geometry::Pose;
 use posematch::imaging::InputConvention;
 use posematch::matcher::candidates::select;
 use posematch::matcher::{EncodedTemplate, MatchOptions, MatchTimings, Matcher};
-use posematch::model::{load_weights, load_weights_from_bytes, select_device};
+use posematch::model::{WeightsSource, load_weights, select_device};
 use posematch::refine::{GrayImage32, refine_pose};
 use posematch::synth::{Level, PairSpec, PhotoSet, SyntheticPair, make_pair};
 
@@ -105,10 +104,7 @@ fn successes(pairs: &[SyntheticPair], answers: &[Option<Pose>]) -> usize {
 fn benches(c: &mut Criterion) {
     let Some(pairs) = pairs() else { return };
     let device = select_device().expect("BURN_DEVICE names a compiled backend");
-    let mut models = vec![(
-        "default",
-        load_weights_from_bytes(DEFAULT_WEIGHTS, DEFAULT_WEIGHTS_NAME, &device).unwrap(),
-    )];
+    let mut models = vec![("default", WeightsSource::Embedded.load(&device).unwrap())];
     let official =
         PathBuf::from(env!("CARGO_MANIFEST_DIR")).join("../shared/reference/tdcm-official.pth");
     if let Ok(model) = load_weights(&official, &device) {

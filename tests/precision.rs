@@ -174,12 +174,9 @@ fn three_paths(matcher: &Matcher, pairs: u64) -> [usize; 3] {
 #[test]
 fn verified_candidates_find_what_the_best_peak_misses_with_the_embedded_weights() {
     let device = Device::flex();
-    let model = posematch::model::load_weights_from_bytes(
-        posematch::cli::DEFAULT_WEIGHTS,
-        "default",
-        &device,
-    )
-    .unwrap();
+    let model = posematch::model::WeightsSource::Embedded
+        .load(&device)
+        .unwrap();
     let matcher = Matcher::new(model, device, InputConvention::ImagenetRgb);
     let pairs = 24;
     let [network, refined, verified] = three_paths(&matcher, pairs);

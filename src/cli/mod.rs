@@ -14,7 +14,9 @@ use clap::{Args, Parser, Subcommand};
 
 use crate::imaging::{DecodeError, ImageLimits, InputConvention, decode_image_file};
 use crate::matcher::{MatchError, Matcher};
-use crate::model::{DeviceError, LoadError, Tdcm, load_weights, save_weights, select_device};
+use crate::model::{
+    DeviceError, LoadError, WeightsSource, load_weights, save_weights, select_device,
+};
 
 pub use match_cmd::MatchArgs;
 
@@ -78,10 +80,10 @@ pub struct VerificationArgs {
 /// Model flags shared by every subcommand that runs the network.
 #[derive(Args, Debug, Clone)]
 pub struct ModelArgs {
-    /// Weights file: .bpk (PoseMatch), .pth/.pt or .safetensors (official PyTorch checkpoint).
-    /// Default: the weights embedded in this binary (models/README.md).
-    #[arg(long)]
-    pub weights: Option<PathBuf>,
+    /// Weights file: .bpk (PoseMatch), .pth/.pt or .safetensors (official PyTorch checkpoint);
+    /// `default`: the weights embedded in this binary (models/README.md).
+    #[arg(long, default_value = "default", value_parser = parse_weights_source)]
+    pub weights: WeightsSource,
     /// Input convention: `imagenet` (RGB, ImageNet mean/std; how the official checkpoint was
     /// trained) or `gray` (the authors' test.py demo).
     #[arg(long, default_value = "imagenet", value_parser = parse_convention)]
@@ -95,6 +97,10 @@ pub enum Method {
     Tdcm,
     /// Exhaustive rotation x scale NCC over a pyramid (no weights; slow), then refinement.
     Ncc,
+}
+
+pub(crate) fn parse_weights_source(s: &str) -> Result<WeightsSource, String> {
+    Ok(WeightsSource::from_path(Some(Path::new(s))))
 }
 
 pub(crate) fn parse_convention(s: &str) -> Result<InputConvention, String> {
@@ -163,29 +169,10 @@ impl CliError {
     }
 }
 
-/// PoseMatch's own default weights, compiled into the binary so that a fresh machine needs no
-/// checkpoint from anywhere else. Trained from random initialisation with `posematch train`;
-/// provenance and measured accuracy in `models/README.md`.
-/// The bytes are 64-byte aligned: burnpack tensors are read in place as `f32`.
-pub const DEFAULT_WEIGHTS: &[u8] = &EMBEDDED.0;
-
-/// How messages name [`DEFAULT_WEIGHTS`].
-pub const DEFAULT_WEIGHTS_NAME: &str = "embedded default weights";
-
-#[repr(C, align(64))]
-struct Aligned<Bytes: ?Sized>(Bytes);
-
-static EMBEDDED: &Aligned<[u8]> = &Aligned(*include_bytes!("../../models/posematch-default.bpk"));
-
 /// Loads the network from `--weights` or the embedded default.
 pub fn load_model(args: &ModelArgs) -> Result<Matcher, CliError> {
     let device = select_device()?;
-    let model: Tdcm = match &args.weights {
-        Some(path) => load_weights(path, &device)?,
-        None => {
-            crate::model::load_weights_from_bytes(DEFAULT_WEIGHTS, DEFAULT_WEIGHTS_NAME, &device)?
-        }
-    };
+    let model = args.weights.load(&device)?;
     Ok(Matcher::new(model, device, args.convention))
 }
 

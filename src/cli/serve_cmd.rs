@@ -6,9 +6,9 @@ use std::time::Duration;
 
 use clap::Args;
 
-use super::{CliError, DEFAULT_WEIGHTS, DEFAULT_WEIGHTS_NAME, parse_convention};
+use super::{CliError, parse_convention};
 use crate::matcher::Matcher;
-use crate::model::{Tdcm, load_weights, load_weights_from_bytes, select_device};
+use crate::model::{WeightsSource, select_device};
 use crate::service::{LogFormat, ModelLoader, Overrides, RunningServer, Settings};
 
 #[derive(Args, Debug)]
@@ -76,8 +76,8 @@ pub fn run(args: ServeArgs) -> Result<(), CliError> {
 /// Checks what can be checked before binding, then defers the (slow) load to the server.
 fn model_loader(settings: &Settings) -> Result<ModelLoader, CliError> {
     let convention = parse_convention(&settings.convention).map_err(CliError::Usage)?;
-    let weights = (!settings.weights.is_empty()).then(|| PathBuf::from(&settings.weights));
-    if let Some(path) = &weights
+    let weights = settings.weights_source();
+    if let WeightsSource::File(path) = &weights
         && !path.is_file()
     {
         return Err(CliError::Input(format!(
@@ -87,11 +87,7 @@ fn model_loader(settings: &Settings) -> Result<ModelLoader, CliError> {
     }
     Ok(Box::new(move || {
         let device = select_device().map_err(|e| e.to_string())?;
-        let model: Tdcm = match &weights {
-            Some(path) => load_weights(path, &device),
-            None => load_weights_from_bytes(DEFAULT_WEIGHTS, DEFAULT_WEIGHTS_NAME, &device),
-        }
-        .map_err(|e| e.to_string())?;
+        let model = weights.load(&device).map_err(|e| e.to_string())?;
         Ok(Matcher::new(model, device, convention))
     }))
 }

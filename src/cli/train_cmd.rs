@@ -7,11 +7,12 @@ use std::time::Duration;
 use clap::Args;
 use indicatif::{ProgressBar, ProgressStyle};
 
-use super::{CliError, DEFAULT_WEIGHTS, DEFAULT_WEIGHTS_NAME};
+use super::CliError;
 use crate::evaluation::Summary;
+use crate::model::WeightsSource;
 use crate::model::select_device;
 use crate::synth::Level;
-use crate::train::{InitialWeights, TrainError, TrainEvent, TrainOptions, train};
+use crate::train::{TrainError, TrainEvent, TrainOptions, train};
 
 #[derive(Args, Debug)]
 pub struct TrainArgs {
@@ -77,16 +78,10 @@ pub fn run(args: TrainArgs) -> Result<(), CliError> {
         search_side: args.search_size,
         learning_rate: args.lr,
         seed: args.seed,
-        init: args.init.map(|path| {
-            if path.as_os_str() == "default" {
-                InitialWeights::Embedded {
-                    bytes: DEFAULT_WEIGHTS,
-                    name: DEFAULT_WEIGHTS_NAME,
-                }
-            } else {
-                InitialWeights::File(path)
-            }
-        }),
+        init: args
+            .init
+            .as_deref()
+            .map(|path| WeightsSource::from_path(Some(path))),
         resume: args.resume,
         out: args.out,
         checkpoint_every: Duration::from_secs_f64(args.checkpoint_minutes * 60.0),
@@ -95,8 +90,8 @@ pub fn run(args: TrainArgs) -> Result<(), CliError> {
     };
     let starting_point = match (&options.init, options.resume) {
         (_, true) => format!("resuming {}", options.out.display()),
-        (Some(InitialWeights::File(path)), _) => format!("from {}", path.display()),
-        (Some(InitialWeights::Embedded { name, .. }), _) => format!("from the {name}"),
+        (Some(WeightsSource::File(path)), _) => format!("from {}", path.display()),
+        (Some(source @ WeightsSource::Embedded), _) => format!("from the {source}"),
         (None, _) => format!("from random weights (seed {})", options.seed),
     };
     let device = select_device()?;

@@ -19,5 +19,6 @@ pub use tdcm::{
     TEMPLATE_GRID, Tdcm, TdcmConfig, TemplateEncoder, depthwise_correlation,
 };
 pub use weights::{
-    LoadError, PYTORCH_KEY_MAP, WeightsFormat, load_weights, load_weights_from_bytes, save_weights,
+    DEFAULT_WEIGHTS, DEFAULT_WEIGHTS_NAME, LoadError, PYTORCH_KEY_MAP, WeightsFormat,
+    WeightsSource, load_weights, load_weights_from_bytes, save_weights,
 };

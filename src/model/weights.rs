@@ -98,6 +98,61 @@ fn key_remapper() -> KeyRemapper {
     KeyRemapper::from_patterns(PYTORCH_KEY_MAP.to_vec()).expect("static key map is valid regex")
 }
 
+/// PoseMatch's own default weights, compiled into the binary so that a fresh machine needs no
+/// checkpoint from anywhere else. Trained from random initialisation by PoseMatch's own code;
+/// provenance and measured accuracy in `models/README.md`.
+/// The bytes are 64-byte aligned: burnpack tensors are read in place as `f32`.
+pub const DEFAULT_WEIGHTS: &[u8] = &EMBEDDED.0;
+
+/// How messages name [`DEFAULT_WEIGHTS`].
+pub const DEFAULT_WEIGHTS_NAME: &str = "embedded default weights";
+
+#[repr(C, align(64))]
+struct Aligned<Bytes: ?Sized>(Bytes);
+
+static EMBEDDED: &Aligned<[u8]> = &Aligned(*include_bytes!("../../models/posematch-default.bpk"));
+
+/// Which weights a model runs: the one type the CLI, the service settings and training use.
+#[derive(Debug, Clone, PartialEq, Eq)]
+pub enum WeightsSource {
+    /// [`DEFAULT_WEIGHTS`], compiled into the binary.
+    Embedded,
+    /// A weights file: `.bpk` (PoseMatch), `.pth`/`.pt` or `.safetensors` (official layout).
+    File(PathBuf),
+}
+
+impl WeightsSource {
+    /// A `--weights` flag or a `weights` setting: absent or empty means the embedded default;
+    /// so does the word `default` (as in `posematch train --init default`).
+    pub fn from_path(path: Option<&Path>) -> Self {
+        match path {
+            Some(p) if !p.as_os_str().is_empty() && p.as_os_str() != "default" => {
+                Self::File(p.to_owned())
+            }
+            _ => Self::Embedded,
+        }
+    }
+
+    /// Builds the network on `device` with these weights.
+    pub fn load(&self, device: &Device) -> Result<Tdcm, LoadError> {
+        match self {
+            Self::Embedded => {
+                load_weights_from_bytes(DEFAULT_WEIGHTS, DEFAULT_WEIGHTS_NAME, device)
+            }
+            Self::File(path) => load_weights(path, device),
+        }
+    }
+}
+
+impl std::fmt::Display for WeightsSource {
+    fn fmt(&self, f: &mut std::fmt::Formatter<'_>) -> std::fmt::Result {
+        match self {
+            Self::Embedded => f.write_str(DEFAULT_WEIGHTS_NAME),
+            Self::File(path) => write!(f, "{}", path.display()),
+        }
+    }
+}
+
 /// Builds the network on `device` and loads the weights at `path` (format from the extension).
 pub fn load_weights(path: &Path, device: &Device) -> Result<Tdcm, LoadError> {
     let mut model = TdcmConfig::new().init(device);

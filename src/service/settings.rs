@@ -125,6 +125,11 @@ impl Settings {
         Ok(settings)
     }
 
+    /// Which weights the service runs (`weights`; empty = the embedded default).
+    pub fn weights_source(&self) -> crate::model::WeightsSource {
+        crate::model::WeightsSource::from_path(Some(std::path::Path::new(&self.weights)))
+    }
+
     /// The options a Match request's zero values stand for.
     pub fn match_defaults(&self) -> MatchOptions {
         MatchOptions {

@@ -33,9 +33,7 @@ use serde::{Deserialize, Serialize};
 use crate::evaluation::{Summary, evaluate_pairs};
 use crate::imaging::{InputConvention, RgbImage32, to_network_input};
 use crate::matcher::Matcher;
-use crate::model::{
-    TEMPLATE_GRID, Tdcm, TdcmConfig, load_weights, load_weights_from_bytes, save_weights,
-};
+use crate::model::{TEMPLATE_GRID, Tdcm, TdcmConfig, WeightsSource, load_weights, save_weights};
 use crate::synth::{
     DEFAULT_MIN_STRUCTURE, Level, PairSpec, PhotoSet, SynthError, SyntheticPair, make_pair,
 };
@@ -56,7 +54,7 @@ pub struct TrainOptions {
     pub learning_rate: f64,
     pub seed: u64,
     /// Start from these weights (fine-tuning); random initialisation when `None`.
-    pub init: Option<InitialWeights>,
+    pub init: Option<WeightsSource>,
     /// Continue the run whose checkpoint is at `out`.
     pub resume: bool,
     pub out: PathBuf,
@@ -64,18 +62,6 @@ pub struct TrainOptions {
     /// Validate every this many steps (and at the end); 0 = only at the end.
     pub validate_every: u64,
     pub validation_pairs: u64,
-}
-
-/// Where fine-tuning starts.
-#[derive(Debug, Clone)]
-pub enum InitialWeights {
-    /// A weights file (.bpk, .pth/.pt or .safetensors).
-    File(PathBuf),
-    /// Burnpack bytes compiled into the binary (the default model), named for messages.
-    Embedded {
-        bytes: &'static [u8],
-        name: &'static str,
-    },
 }
 
 /// What the loop tells its caller.
@@ -267,13 +253,7 @@ pub fn train(
             })?;
         (model, progress.step)
     } else if let Some(init) = &options.init {
-        let model = match init {
-            InitialWeights::File(path) => load_weights(path, &training_device)?,
-            InitialWeights::Embedded { bytes, name } => {
-                load_weights_from_bytes(bytes, name, &training_device)?
-            }
-        };
-        (model, 0)
+        (init.load(&training_device)?, 0)
     } else {
         (TdcmConfig::new().init(&training_device), 0)
     };
