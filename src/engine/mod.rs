@@ -64,24 +64,19 @@ pub enum EngineError {
     DeadlineExceeded(String),
     #[error("{0}")]
     Unavailable(String),
+    /// A failure of ours, not the request's (a background task died).
     #[error("{0}")]
     Internal(String),
-}
-
-impl From<MatchError> for EngineError {
-    fn from(e: MatchError) -> Self {
-        // Every matcher error is about the request: sizes, options, too much work.
-        Self::InvalidArgument(e.to_string())
-    }
-}
-
-impl From<StoreError> for EngineError {
-    fn from(e: StoreError) -> Self {
-        Self::Internal(e.to_string())
-    }
+    /// The matcher refused the request (sizes, options, too much work).
+    #[error(transparent)]
+    Match(#[from] MatchError),
+    /// The template store failed (disk, permissions); never the request's fault.
+    #[error(transparent)]
+    Store(#[from] StoreError),
 }
 
 impl From<EncodeError> for EngineError {
+    /// Encoding a template: the template's own problem, or the model thread is gone.
     fn from(e: EncodeError) -> Self {
         match e {
             EncodeError::Match(e) => Self::InvalidArgument(format!("template: {e}")),

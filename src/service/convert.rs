@@ -13,16 +13,25 @@ use crate::geometry::Pose;
 use crate::imaging::{DecodeError, ImageLimits, RgbImage32, decode_image};
 use crate::matcher::{AngleRange, MatchOptions, ScaleRange};
 
+/// The one mapping from engine errors to gRPC status codes. Failures of ours (store, internal)
+/// are logged in full and answered without server paths or details.
 pub fn status_of(error: EngineError) -> Status {
     let message = error.to_string();
     match error {
-        EngineError::InvalidArgument(_) => Status::invalid_argument(message),
+        EngineError::InvalidArgument(_) | EngineError::Match(_) => {
+            Status::invalid_argument(message)
+        }
+        EngineError::Unavailable(_) => Status::unavailable(message),
         EngineError::NotFound(_) => Status::not_found(message),
         EngineError::AlreadyExists(_) => Status::already_exists(message),
         EngineError::ResourceExhausted(_) => Status::resource_exhausted(message),
         EngineError::DeadlineExceeded(_) => Status::deadline_exceeded(message),
-        EngineError::Unavailable(_) => Status::unavailable(message),
-        EngineError::Internal(_) => Status::internal(message),
+        EngineError::Store(_) | EngineError::Internal(_) => {
+            tracing::error!(error = %message, "internal error");
+            Status::internal(
+                "internal error in the template store or a server task; the server log has the details",
+            )
+        }
     }
 }
 
@@ -233,6 +242,29 @@ pub fn deadline_of(metadata: &tonic::metadata::MetadataMap, received: Instant) -
 #[cfg(test)]
 mod tests {
     use super::*;
+
+    #[test]
+    fn store_failures_are_internal_and_keep_server_paths_to_the_log() {
+        let error = EngineError::from(crate::engine::store::StoreError::Io {
+            path: "/srv/secret/templates/part.json".into(),
+            source: std::io::Error::other("disk full"),
+        });
+        let status = status_of(error);
+        assert_eq!(status.code(), tonic::Code::Internal);
+        assert!(
+            !status.message().contains("/srv/secret"),
+            "{}",
+            status.message()
+        );
+        let status = status_of(EngineError::from(
+            crate::matcher::MatchError::TemplateSize {
+                width: 4,
+                height: 4,
+            },
+        ));
+        assert_eq!(status.code(), tonic::Code::InvalidArgument);
+        assert!(status.message().contains("4x4"));
+    }
 
     fn raw(
         width: u32,
