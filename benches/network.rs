@@ -17,11 +17,12 @@ use std::time::{Duration, Instant};
 
 use burn::prelude::*;
 use criterion::{BenchmarkId, Criterion, Throughput, criterion_group, criterion_main};
+use posematch::imaging::GrayImage32;
 use posematch::imaging::{InputConvention, RgbImage32};
 use posematch::matcher::decode::{MapPlanes, decode_peak, find_peaks};
 use posematch::matcher::{MatchOptions, Matcher};
 use posematch::model::{Tdcm, TdcmConfig, load_weights, multiply_adds, select_device};
-use posematch::refine::{GrayImage32, refine_pose};
+use posematch::refine::refine_pose;
 
 fn model(device: &Device) -> (Tdcm, &'static str) {
     let official =

@@ -19,11 +19,12 @@ static ALLOCATOR: mimalloc::MiMalloc = mimalloc::MiMalloc;
 use criterion::{Criterion, Throughput, criterion_group, criterion_main};
 use posematch::evaluation::{SUCCESS_IOU, pair_error};
 use posematch::geometry::Pose;
+use posematch::imaging::GrayImage32;
 use posematch::imaging::InputConvention;
 use posematch::matcher::candidates::select;
 use posematch::matcher::{EncodedTemplate, MatchOptions, MatchTimings, Matcher};
 use posematch::model::{WeightsSource, load_weights, select_device};
-use posematch::refine::{GrayImage32, refine_pose};
+use posematch::refine::refine_pose;
 use posematch::synth::{Level, PairSpec, PhotoSet, SyntheticPair, make_pair};
 
 const PAIRS: u64 = 24;

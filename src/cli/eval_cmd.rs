@@ -17,8 +17,8 @@ use crate::evaluation::{
     match_pair, matched_predictions, pair_error, summarise,
 };
 use crate::geometry::Pose;
+use crate::imaging::GrayImage32;
 use crate::matcher::MatchOptions;
-use crate::refine::GrayImage32;
 use crate::synth::{Level, PairSpec, PhotoSet, SyntheticPair, make_multi_instance, make_pair};
 
 #[derive(Args, Debug)]

@@ -10,8 +10,8 @@ use clap::Args;
 use serde_json::{Value, json};
 
 use super::{CliError, ModelArgs, load_model, read_image};
+use crate::imaging::GrayImage32;
 use crate::matcher::{AngleRange, EncodedTemplate, MatchOptions, Matcher, ScaleRange};
-use crate::refine::GrayImage32;
 
 #[derive(Args, Debug)]
 pub struct MatchArgs {

@@ -7,9 +7,10 @@ use std::time::Instant;
 use serde::Serialize;
 
 use crate::geometry::{Pose, angle_distance_deg, rotated_iou};
+use crate::imaging::GrayImage32;
 use crate::matcher::candidates::{answer, select};
 use crate::matcher::{MatchError, MatchJob, MatchOptions, Matcher, Proposal};
-use crate::refine::{GrayImage32, refine_pose};
+use crate::refine::refine_pose;
 use crate::synth::SyntheticPair;
 
 /// IoU at which a prediction counts as the object (the paper's Succ).

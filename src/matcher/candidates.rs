@@ -15,7 +15,8 @@ use rayon::prelude::*;
 use super::options::MatchOptions;
 use super::{MatchJob, MatchOutcome, Proposal};
 use crate::geometry::{Pose, rotated_iou};
-use crate::refine::{GrayImage32, Screened, Verifier};
+use crate::imaging::GrayImage32;
+use crate::refine::{Screened, Verifier};
 
 /// Screen ZNCC below which a candidate is not worth confirming: a true object at the right
 /// angle scores far above it even with its centre a few pixels off (README "Verified

@@ -14,9 +14,9 @@ use std::time::Instant;
 use burn::prelude::*;
 
 use crate::geometry::Pose;
+use crate::imaging::GrayImage32;
 use crate::imaging::{InputConvention, RgbImage32, resize_rgb, to_network_input};
 use crate::model::{TEMPLATE_GRID, Tdcm};
-use crate::refine::GrayImage32;
 use decode::{MapPlanes, decode_peak, find_peaks};
 pub use options::{AngleRange, MatchOptions, ScaleRange};
 use plan::{MAX_NETWORK_PIXELS, MIN_INPUT_SIDE, ScalePass, Tile};
@@ -338,7 +338,7 @@ fn prepare(
     let mut pieces = Vec::new();
     for pass in passes {
         let resized = resize_rgb(job.image, pass.width as u32, pass.height as u32);
-        let padded = pad_to_min_side(resized, MIN_INPUT_SIDE);
+        let padded = crate::imaging::pad_to_min_side(resized, MIN_INPUT_SIDE);
         for tile in plan::tiles(
             padded.width as usize,
             padded.height as usize,
@@ -364,25 +364,6 @@ fn prepare(
         }
     }
     Ok(pieces)
-}
-
-/// Replicates the last row/column until both sides are at least `min_side`.
-fn pad_to_min_side(image: RgbImage32, min_side: usize) -> RgbImage32 {
-    let (w, h) = (image.width as usize, image.height as usize);
-    let (nw, nh) = (w.max(min_side), h.max(min_side));
-    if (nw, nh) == (w, h) {
-        return image;
-    }
-    let mut pixels = Vec::with_capacity(nw * nh * 3);
-    for y in 0..nh {
-        let row = &image.pixels[y.min(h - 1) * w * 3..(y.min(h - 1) + 1) * w * 3];
-        pixels.extend_from_slice(row);
-        let last = &row[(w - 1) * 3..];
-        for _ in w..nw {
-            pixels.extend_from_slice(last);
-        }
-    }
-    RgbImage32::new(nw as u32, nh as u32, pixels)
 }
 
 /// Peaks of one piece that it owns, as poses in the original image.

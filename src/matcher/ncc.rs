@@ -10,7 +10,8 @@
 use rayon::prelude::*;
 
 use crate::geometry::Pose;
-use crate::refine::{GrayImage32, Screened, TemplatePoints, Verifier};
+use crate::imaging::GrayImage32;
+use crate::refine::{Screened, TemplatePoints, Verifier};
 
 use super::candidates::select;
 use super::options::MatchOptions;

@@ -13,8 +13,8 @@
 //! form every iteration, so minimising it is maximising the zero-mean normalised correlation the
 //! rest of the refinement scores with (lighting changes between template and image cost nothing).
 
-use super::GrayImage32;
 use crate::geometry::Pose;
+use crate::imaging::{GrayImage32, gaussian_blur, gradients};
 
 /// A blurred window of the search image with its gradients, in window coordinates.
 pub(super) struct GradientWindow {
@@ -320,64 +320,6 @@ fn solve5(mut m: Matrix5, mut rhs: [f64; 5]) -> Option<[f64; 5]> {
         x[row] = (rhs[row] - tail) / m[row][row];
     }
     x.iter().all(|v| v.is_finite()).then_some(x)
-}
-
-/// Separable Gaussian blur with clamped borders; a copy when `sigma` is below 0.3.
-pub(super) fn gaussian_blur(image: &GrayImage32, sigma: f32) -> GrayImage32 {
-    if sigma < 0.3 {
-        return image.clone();
-    }
-    let radius = (3.0 * sigma).ceil() as isize;
-    let mut kernel: Vec<f32> = (-radius..=radius)
-        .map(|k| (-(k * k) as f32 / (2.0 * sigma * sigma)).exp())
-        .collect();
-    let total: f32 = kernel.iter().sum();
-    kernel.iter_mut().for_each(|k| *k /= total);
-    let (w, h) = (image.width as isize, image.height as isize);
-    let mut horizontal = vec![0f32; image.values.len()];
-    for y in 0..h {
-        for x in 0..w {
-            let mut acc = 0.0;
-            for (k, weight) in kernel.iter().enumerate() {
-                let xx = (x + k as isize - radius).clamp(0, w - 1);
-                acc += weight * image.values[(y * w + xx) as usize];
-            }
-            horizontal[(y * w + x) as usize] = acc;
-        }
-    }
-    let mut values = vec![0f32; image.values.len()];
-    for y in 0..h {
-        for x in 0..w {
-            let mut acc = 0.0;
-            for (k, weight) in kernel.iter().enumerate() {
-                let yy = (y + k as isize - radius).clamp(0, h - 1);
-                acc += weight * horizontal[(yy * w + x) as usize];
-            }
-            values[(y * w + x) as usize] = acc;
-        }
-    }
-    GrayImage32 {
-        width: image.width,
-        height: image.height,
-        values,
-    }
-}
-
-/// Central-difference gradients (one-sided at the border).
-fn gradients(image: &GrayImage32) -> (Vec<f32>, Vec<f32>) {
-    let (w, h) = (image.width, image.height);
-    let v = &image.values;
-    let mut gx = vec![0f32; w * h];
-    let mut gy = vec![0f32; w * h];
-    for y in 0..h {
-        for x in 0..w {
-            let (l, r) = (x.saturating_sub(1), (x + 1).min(w - 1));
-            let (t, b) = (y.saturating_sub(1), (y + 1).min(h - 1));
-            gx[y * w + x] = (v[y * w + r] - v[y * w + l]) / (r - l).max(1) as f32;
-            gy[y * w + x] = (v[b * w + x] - v[t * w + x]) / (b - t).max(1) as f32;
-        }
-    }
-    (gx, gy)
 }
 
 #[cfg(test)]

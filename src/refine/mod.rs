@@ -35,7 +35,7 @@ mod verify;
 
 pub use verify::{Screened, Verified, Verifier};
 
-use crate::imaging::RgbImage32;
+use crate::imaging::GrayImage32;
 
 /// ZNCC below which the refined alignment is not trusted (the content is too ambiguous).
 const MIN_MATCH_SCORE: f32 = 0.6;
@@ -48,65 +48,6 @@ const FULL_CIRCLE_BELOW: f32 = 0.8;
 /// (proportionally more for larger objects, whose start is proportionally further off): a wide
 /// basin first, then the sharp image for the last fraction of a pixel.
 const ALIGN_SIGMAS: [f32; 3] = [2.0, 1.0, 0.0];
-
-/// A single-channel float image.
-#[derive(Debug, Clone)]
-pub struct GrayImage32 {
-    pub width: usize,
-    pub height: usize,
-    pub values: Vec<f32>,
-}
-
-impl GrayImage32 {
-    pub fn from_rgb(image: &RgbImage32) -> Self {
-        Self {
-            width: image.width as usize,
-            height: image.height as usize,
-            values: image.to_gray(),
-        }
-    }
-
-    /// Half the size (2x2 box filter; an odd last row or column is repeated).
-    pub fn downsample(&self) -> GrayImage32 {
-        let (w, h) = ((self.width / 2).max(1), (self.height / 2).max(1));
-        let at = |x: usize, y: usize| {
-            self.values[y.min(self.height - 1) * self.width + x.min(self.width - 1)]
-        };
-        let mut values = Vec::with_capacity(w * h);
-        for y in 0..h {
-            for x in 0..w {
-                values.push(
-                    (at(2 * x, 2 * y)
-                        + at(2 * x + 1, 2 * y)
-                        + at(2 * x, 2 * y + 1)
-                        + at(2 * x + 1, 2 * y + 1))
-                        / 4.0,
-                );
-            }
-        }
-        GrayImage32 {
-            width: w,
-            height: h,
-            values,
-        }
-    }
-
-    /// Bilinear sample with the coordinates clamped to the image.
-    #[inline]
-    fn sample(&self, x: f32, y: f32) -> f32 {
-        let x = x.clamp(0.0, (self.width - 1) as f32);
-        let y = y.clamp(0.0, (self.height - 1) as f32);
-        let (x0, y0) = (x as usize, y as usize);
-        let x1 = (x0 + 1).min(self.width - 1);
-        let y1 = (y0 + 1).min(self.height - 1);
-        let (fx, fy) = (x - x0 as f32, y - y0 as f32);
-        let row0 = &self.values[y0 * self.width..];
-        let row1 = &self.values[y1 * self.width..];
-        let top = row0[x0] + (row0[x1] - row0[x0]) * fx;
-        let bottom = row1[x0] + (row1[x1] - row1[x0]) * fx;
-        top + (bottom - top) * fy
-    }
-}
 
 /// Every `stride`-th pixel of `template` (at most ~`max_side` per side): offsets from the
 /// template centre and values.

@@ -18,7 +18,7 @@ pub fn jitter(image: &mut RgbImage32, rng: &mut StdRng) {
         *v = (*v - mean) * contrast + mean + brightness;
     }
     if rng.random_bool(0.3) {
-        blur_121(image);
+        crate::imaging::blur_121(image);
     }
     if rng.random_bool(0.5) {
         let sigma: f32 = rng.random_range(0.0..0.03);
@@ -30,31 +30,6 @@ pub fn jitter(image: &mut RgbImage32, rng: &mut StdRng) {
     }
     for v in &mut image.pixels {
         *v = v.clamp(0.0, 1.0);
-    }
-}
-
-/// Separable [1 2 1]/4 blur with clamped borders.
-fn blur_121(image: &mut RgbImage32) {
-    let (w, h) = (image.width as usize, image.height as usize);
-    let src = image.pixels.clone();
-    let mut tmp = vec![0f32; src.len()];
-    for y in 0..h {
-        for x in 0..w {
-            let (l, r) = (x.saturating_sub(1), (x + 1).min(w - 1));
-            for c in 0..3 {
-                let at = |xx: usize| src[(y * w + xx) * 3 + c];
-                tmp[(y * w + x) * 3 + c] = 0.25 * at(l) + 0.5 * at(x) + 0.25 * at(r);
-            }
-        }
-    }
-    for y in 0..h {
-        let (t, b) = (y.saturating_sub(1), (y + 1).min(h - 1));
-        for x in 0..w {
-            for c in 0..3 {
-                let at = |yy: usize| tmp[(yy * w + x) * 3 + c];
-                image.pixels[(y * w + x) * 3 + c] = 0.25 * at(t) + 0.5 * at(y) + 0.25 * at(b);
-            }
-        }
     }
 }
 

@@ -1,0 +1,122 @@
+//! The single-channel float image that refinement, verification and the classical matcher
+//! work on, and the operations on it: bilinear sampling, 2x downsampling, Gaussian blur and
+//! gradients. Image operations live here, not in the stages that use them.
+
+use super::RgbImage32;
+
+/// A single-channel float image.
+#[derive(Debug, Clone)]
+pub struct GrayImage32 {
+    pub width: usize,
+    pub height: usize,
+    pub values: Vec<f32>,
+}
+
+impl GrayImage32 {
+    pub fn from_rgb(image: &RgbImage32) -> Self {
+        Self {
+            width: image.width as usize,
+            height: image.height as usize,
+            values: image.to_gray(),
+        }
+    }
+
+    /// Half the size (2x2 box filter; an odd last row or column is repeated).
+    pub fn downsample(&self) -> GrayImage32 {
+        let (w, h) = ((self.width / 2).max(1), (self.height / 2).max(1));
+        let at = |x: usize, y: usize| {
+            self.values[y.min(self.height - 1) * self.width + x.min(self.width - 1)]
+        };
+        let mut values = Vec::with_capacity(w * h);
+        for y in 0..h {
+            for x in 0..w {
+                values.push(
+                    (at(2 * x, 2 * y)
+                        + at(2 * x + 1, 2 * y)
+                        + at(2 * x, 2 * y + 1)
+                        + at(2 * x + 1, 2 * y + 1))
+                        / 4.0,
+                );
+            }
+        }
+        GrayImage32 {
+            width: w,
+            height: h,
+            values,
+        }
+    }
+
+    /// Bilinear sample with the coordinates clamped to the image.
+    #[inline]
+    pub fn sample(&self, x: f32, y: f32) -> f32 {
+        let x = x.clamp(0.0, (self.width - 1) as f32);
+        let y = y.clamp(0.0, (self.height - 1) as f32);
+        let (x0, y0) = (x as usize, y as usize);
+        let x1 = (x0 + 1).min(self.width - 1);
+        let y1 = (y0 + 1).min(self.height - 1);
+        let (fx, fy) = (x - x0 as f32, y - y0 as f32);
+        let row0 = &self.values[y0 * self.width..];
+        let row1 = &self.values[y1 * self.width..];
+        let top = row0[x0] + (row0[x1] - row0[x0]) * fx;
+        let bottom = row1[x0] + (row1[x1] - row1[x0]) * fx;
+        top + (bottom - top) * fy
+    }
+}
+
+/// Separable Gaussian blur with clamped borders; a copy when `sigma` is below 0.3.
+pub fn gaussian_blur(image: &GrayImage32, sigma: f32) -> GrayImage32 {
+    if sigma < 0.3 {
+        return image.clone();
+    }
+    let radius = (3.0 * sigma).ceil() as isize;
+    let mut kernel: Vec<f32> = (-radius..=radius)
+        .map(|k| (-(k * k) as f32 / (2.0 * sigma * sigma)).exp())
+        .collect();
+    let total: f32 = kernel.iter().sum();
+    kernel.iter_mut().for_each(|k| *k /= total);
+    let (w, h) = (image.width as isize, image.height as isize);
+    let mut horizontal = vec![0f32; image.values.len()];
+    for y in 0..h {
+        for x in 0..w {
+            let mut acc = 0.0;
+            for (k, weight) in kernel.iter().enumerate() {
+                let xx = (x + k as isize - radius).clamp(0, w - 1);
+                acc += weight * image.values[(y * w + xx) as usize];
+            }
+            horizontal[(y * w + x) as usize] = acc;
+        }
+    }
+    let mut values = vec![0f32; image.values.len()];
+    for y in 0..h {
+        for x in 0..w {
+            let mut acc = 0.0;
+            for (k, weight) in kernel.iter().enumerate() {
+                let yy = (y + k as isize - radius).clamp(0, h - 1);
+                acc += weight * horizontal[(yy * w + x) as usize];
+            }
+            values[(y * w + x) as usize] = acc;
+        }
+    }
+    GrayImage32 {
+        width: image.width,
+        height: image.height,
+        values,
+    }
+}
+
+/// Central-difference gradients (one-sided at the border).
+pub fn gradients(image: &GrayImage32) -> (Vec<f32>, Vec<f32>) {
+    let (w, h) = (image.width, image.height);
+    let v = &image.values;
+    let mut gx = vec![0f32; w * h];
+    let mut gy = vec![0f32; w * h];
+    for y in 0..h {
+        for x in 0..w {
+            let (l, r) = (x.saturating_sub(1), (x + 1).min(w - 1));
+            let (t, b) = (y.saturating_sub(1), (y + 1).min(h - 1));
+            gx[y * w + x] = (v[y * w + r] - v[y * w + l]) / (r - l).max(1) as f32;
+            gy[y * w + x] = (v[b * w + x] - v[t * w + x]) / (b - t).max(1) as f32;
+        }
+    }
+    (gx, gy)
+}
