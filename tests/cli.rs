@@ -361,3 +361,64 @@ fn serve_failures_exit_with_the_documented_status() {
     assert_eq!(code, 3, "{stderr}");
     assert!(!stderr.contains("panicked"), "{stderr}");
 }
+
+/// `--method ncc` answers batch files too (no weights needed); bad lines get their error.
+#[test]
+fn classical_matcher_runs_in_batch_mode() {
+    use rand::{Rng, SeedableRng};
+    let tmp = tempfile::tempdir().unwrap();
+    let mut rng = rand::rngs::StdRng::seed_from_u64(3);
+    let mut image = image::RgbImage::from_pixel(96, 96, image::Rgb([120, 100, 80]));
+    for _ in 0..60 {
+        let (cx, cy, r) = (
+            rng.random_range(0..96i32),
+            rng.random_range(0..96i32),
+            rng.random_range(2..9i32),
+        );
+        let colour = image::Rgb([rng.random(), rng.random(), rng.random()]);
+        for y in (cy - r).max(0)..(cy + r).min(96) {
+            for x in (cx - r).max(0)..(cx + r).min(96) {
+                if (x - cx).pow(2) + (y - cy).pow(2) <= r * r {
+                    image.put_pixel(x as u32, y as u32, colour);
+                }
+            }
+        }
+    }
+    image.save(tmp.path().join("image.png")).unwrap();
+    image::imageops::crop_imm(&image, 40, 30, 24, 24)
+        .to_image()
+        .save(tmp.path().join("template.png"))
+        .unwrap();
+    let pairs = tmp.path().join("pairs.jsonl");
+    std::fs::write(
+        &pairs,
+        [
+            r#"{"id": 1, "template": "template.png", "image": "image.png"}"#,
+            r#"{"id": 2, "template": "template.png", "image": "missing.png"}"#,
+        ]
+        .join("\n"),
+    )
+    .unwrap();
+    let out = tmp.path().join("results.jsonl");
+    let (code, _, stderr) = posematch(&[
+        "match",
+        "--method",
+        "ncc",
+        "--pairs",
+        pairs.to_str().unwrap(),
+        "--out",
+        out.to_str().unwrap(),
+    ]);
+    assert_eq!(code, 0, "{stderr}");
+    let lines: Vec<Value> = std::fs::read_to_string(&out)
+        .unwrap()
+        .lines()
+        .map(|l| serde_json::from_str(l).unwrap())
+        .collect();
+    let pose = &lines[0]["poses"][0];
+    // The template's centre in the image: (40 + 11.5, 30 + 11.5).
+    assert!((pose["x"].as_f64().unwrap() - 51.5).abs() < 0.5, "{pose}");
+    assert!((pose["y"].as_f64().unwrap() - 41.5).abs() < 0.5, "{pose}");
+    assert!(pose["score"].as_f64().unwrap() > 0.9, "{pose}");
+    assert!(lines[1]["error"].as_str().unwrap().contains("missing.png"));
+}

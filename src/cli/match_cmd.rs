@@ -10,7 +10,7 @@ use clap::Args;
 use serde_json::{Value, json};
 
 use super::{CliError, ModelArgs, load_model, read_image};
-use crate::imaging::GrayImage32;
+use crate::imaging::{GrayImage32, RgbImage32};
 use crate::matcher::{AngleRange, EncodedTemplate, MatchOptions, Matcher, ScaleRange};
 
 #[derive(Args, Debug)]
@@ -49,8 +49,8 @@ pub struct MatchArgs {
     #[arg(long)]
     pub no_refine: bool,
     /// Matcher: `tdcm` (the network) or `ncc` (classical exhaustive search, no weights needed;
-    /// single pairs only).
-    #[arg(long, value_enum, default_value = "tdcm", conflicts_with = "pairs")]
+    /// slow), for single pairs and `--pairs` alike.
+    #[arg(long, value_enum, default_value = "tdcm")]
     pub method: super::Method,
     /// Draw the poses on the search image and save it here (PNG).
     #[arg(long, conflicts_with = "pairs")]
@@ -99,8 +99,11 @@ pub fn run(args: MatchArgs) -> Result<(), CliError> {
     let options = args.options()?;
     // Read inputs before loading the model so that bad files fail fast.
     if let (Some(pairs), Some(out)) = (&args.pairs, &args.out) {
-        let matcher = load_model(&args.model)?;
-        return run_pairs(&matcher, pairs, out, &options);
+        let matcher = match args.method {
+            super::Method::Tdcm => Some(load_model(&args.model)?),
+            super::Method::Ncc => None,
+        };
+        return run_pairs(matcher.as_ref(), pairs, out, &options);
     }
     let (Some(template_path), Some(image_path)) = (&args.template, &args.image) else {
         return Err(CliError::Usage(
@@ -110,18 +113,8 @@ pub fn run(args: MatchArgs) -> Result<(), CliError> {
     let template = read_image(template_path)?;
     let image = read_image(image_path)?;
     let (poses, ms) = if args.method == super::Method::Ncc {
-        crate::matcher::check_pair_sizes(
-            template.width,
-            template.height,
-            image.width,
-            image.height,
-        )?;
         let start = Instant::now();
-        let poses = crate::matcher::ncc::ncc_match(
-            &GrayImage32::from_rgb(&template),
-            &GrayImage32::from_rgb(&image),
-            &options,
-        );
+        let poses = ncc_answer(&template, &image, &options)?;
         (poses, start.elapsed().as_secs_f64() * 1e3)
     } else {
         let matcher = load_model(&args.model)?;
@@ -148,14 +141,29 @@ pub fn run(args: MatchArgs) -> Result<(), CliError> {
     Ok(())
 }
 
+/// The classical matcher's answer (`--method ncc`): sizes checked as the network path checks
+/// them.
+fn ncc_answer(
+    template: &RgbImage32,
+    image: &RgbImage32,
+    options: &MatchOptions,
+) -> Result<Vec<crate::geometry::Pose>, crate::matcher::MatchError> {
+    crate::matcher::check_pair_sizes(template.width, template.height, image.width, image.height)?;
+    Ok(crate::matcher::ncc::ncc_match(
+        &GrayImage32::from_rgb(template),
+        &GrayImage32::from_rgb(image),
+        options,
+    ))
+}
+
 fn round3(v: f64) -> f64 {
     (v * 1000.0).round() / 1000.0
 }
 
 /// Batch mode. A bad line gets an `"error"` for its id and the batch goes on; templates are
-/// encoded once per path.
+/// encoded once per path. `matcher` None: the classical matcher (`--method ncc`).
 fn run_pairs(
-    matcher: &Matcher,
+    matcher: Option<&Matcher>,
     pairs: &Path,
     out: &Path,
     options: &MatchOptions,
@@ -194,7 +202,7 @@ fn run_pairs(
 }
 
 fn match_line(
-    matcher: &Matcher,
+    matcher: Option<&Matcher>,
     line: &str,
     base: &Path,
     options: &MatchOptions,
@@ -222,6 +230,11 @@ fn match_line(
                     .ok_or("`max_instances` must be a positive integer")? as usize;
             options.validate()?;
         }
+        let Some(matcher) = matcher else {
+            let template = read_image(&template_path).map_err(|e| e.to_string())?;
+            let image = read_image(&image_path).map_err(|e| e.to_string())?;
+            return ncc_answer(&template, &image, &options).map_err(|e| e.to_string());
+        };
         if !templates.contains_key(&template_path) {
             let template = read_image(&template_path).map_err(|e| e.to_string())?;
             let encoded = matcher
