@@ -86,7 +86,7 @@ pub struct ModelArgs {
     pub weights: WeightsSource,
     /// Input convention: `imagenet` (RGB, ImageNet mean/std; how the official checkpoint was
     /// trained) or `gray` (the authors' test.py demo).
-    #[arg(long, default_value = "imagenet", value_parser = parse_convention)]
+    #[arg(long, default_value = "imagenet", value_parser = str::parse::<InputConvention>)]
     pub convention: InputConvention,
 }
 
@@ -101,16 +101,6 @@ pub enum Method {
 
 pub(crate) fn parse_weights_source(s: &str) -> Result<WeightsSource, String> {
     Ok(WeightsSource::from_path(Some(Path::new(s))))
-}
-
-pub(crate) fn parse_convention(s: &str) -> Result<InputConvention, String> {
-    match s {
-        "imagenet" => Ok(InputConvention::ImagenetRgb),
-        "gray" | "grey" => Ok(InputConvention::Gray),
-        _ => Err(format!(
-            "unknown convention `{s}`: use `imagenet` or `gray`"
-        )),
-    }
 }
 
 /// Everything that ends a command with a non-zero exit; the message says what to fix.

@@ -6,7 +6,7 @@ use std::time::Duration;
 
 use clap::Args;
 
-use super::{CliError, parse_convention};
+use super::CliError;
 use crate::matcher::Matcher;
 use crate::model::{WeightsSource, select_device};
 use crate::service::{LogFormat, ModelLoader, Overrides, RunningServer, Settings};
@@ -75,7 +75,7 @@ pub fn run(args: ServeArgs) -> Result<(), CliError> {
 
 /// Checks what can be checked before binding, then defers the (slow) load to the server.
 fn model_loader(settings: &Settings) -> Result<ModelLoader, CliError> {
-    let convention = parse_convention(&settings.convention).map_err(CliError::Usage)?;
+    let convention = settings.convention;
     let weights = settings.weights_source();
     if let WeightsSource::File(path) = &weights
         && !path.is_file()

@@ -7,8 +7,10 @@ use fast_image_resize::{FilterType, PixelType, ResizeAlg, ResizeOptions, Resizer
 
 use super::RgbImage32;
 
-/// How pixels become network input values.
-#[derive(Debug, Clone, Copy, PartialEq, Eq, Default)]
+/// How pixels become network input values. Written `imagenet` or `gray` (`grey`) in flags and
+/// settings; this is the one parser of those words.
+#[derive(Debug, Clone, Copy, PartialEq, Eq, Default, serde::Deserialize, serde::Serialize)]
+#[serde(try_from = "String", into = "String")]
 pub enum InputConvention {
     /// The authors' training convention: RGB, ImageNet mean/std. Finds clearly more objects
     /// with the official checkpoint (reference README), so it is the default.
@@ -16,6 +18,38 @@ pub enum InputConvention {
     ImagenetRgb,
     /// The authors' `test.py` demo: grey replicated to 3 channels, `(v - 0.5) / 0.5`.
     Gray,
+}
+
+impl std::str::FromStr for InputConvention {
+    type Err = String;
+
+    fn from_str(s: &str) -> Result<Self, String> {
+        match s {
+            "imagenet" => Ok(Self::ImagenetRgb),
+            "gray" | "grey" => Ok(Self::Gray),
+            other => Err(format!(
+                "unknown input convention `{other}`: use \"imagenet\" or \"gray\""
+            )),
+        }
+    }
+}
+
+impl From<InputConvention> for String {
+    fn from(convention: InputConvention) -> Self {
+        match convention {
+            InputConvention::ImagenetRgb => "imagenet",
+            InputConvention::Gray => "gray",
+        }
+        .into()
+    }
+}
+
+impl TryFrom<String> for InputConvention {
+    type Error = String;
+
+    fn try_from(s: String) -> Result<Self, String> {
+        s.parse()
+    }
 }
 
 const IMAGENET_MEAN: [f32; 3] = [0.485, 0.456, 0.406];

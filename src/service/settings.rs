@@ -27,7 +27,7 @@ pub struct Settings {
     /// Weights file; empty means the weights embedded in the binary.
     pub weights: String,
     /// Input convention of the weights: `imagenet` or `gray`.
-    pub convention: String,
+    pub convention: crate::imaging::InputConvention,
     /// Most search images in one forward pass; a batch forms only from requests already
     /// waiting, so a lone request never waits for one. 4 measured best on 2 cores (README).
     pub max_batch_size: usize,
@@ -186,12 +186,6 @@ impl Settings {
                 self.max_message_bytes
             ));
         }
-        if !matches!(self.convention.as_str(), "imagenet" | "gray" | "grey") {
-            return bad(format!(
-                "convention = {:?}: use \"imagenet\" or \"gray\"",
-                self.convention
-            ));
-        }
         Ok(())
     }
 }
@@ -249,6 +243,11 @@ mod tests {
                 .to_string()
         };
         assert!(err(&[("POSEMATCH__MAX_BATCH_SIZE", "0")]).contains("max_batch_size"));
+        let convention = err(&[("POSEMATCH__CONVENTION", "rgb")]);
+        assert!(
+            convention.contains("convention") && convention.contains("imagenet"),
+            "{convention}"
+        );
         assert!(err(&[("POSEMATCH__LISTEN", "nowhere")]).contains("listen"));
         assert!(err(&[("POSEMATCH__QUEUE_SIZE", "many")]).contains("queue_size"));
         assert!(err(&[("POSEMATCH__LOG_FORMAT", "xml")]).contains("log_format"));
