@@ -2,9 +2,9 @@
 
 The photos are decoded once and held on the device as one uint8 tensor; each batch draws boxes,
 angles, scales and window positions with a `torch.Generator`, cuts every search window with one
-`grid_sample` (bilinear, pixel centres at integers, as `src/synth/sampler.rs`) and every template
-with an exact antialiased-bilinear resize (the filter of `fast_image_resize` and PIL that
-`resize_rgb` uses), rejects what `src/synth` rejects (a box that does not fit, a window with
+`grid_sample` (bilinear, pixel centres at integers, as `src/imaging/rgb.rs` reads photos) and
+every template with an exact antialiased-bilinear resize (the filter of `fast_image_resize` and
+PIL that `resize_rgb` uses), rejects what `src/synth` rejects (a box that does not fit, a window with
 blank border, a template flatter than `min_structure`), jitters the searches as
 `src/train/jitter.rs` does and renders the labels as `src/train/labels.rs` does. No CPU data
 loader runs on the hot path.

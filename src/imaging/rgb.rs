@@ -1,5 +1,7 @@
-//! Operations on colour float images that more than one stage needs: border padding and a
-//! small blur.
+//! Operations on colour images that more than one stage needs: bilinear sampling (8-bit photos
+//! and float images), border padding and a small blur.
+
+use image::RgbImage;
 
 use super::RgbImage32;
 
@@ -44,5 +46,49 @@ pub fn blur_121(image: &mut RgbImage32) {
                 image.pixels[(y * w + x) * 3 + c] = 0.25 * at(t) + 0.5 * at(y) + 0.25 * at(b);
             }
         }
+    }
+}
+
+/// Bilinear sample of an 8-bit RGB image at `(x, y)` (pixel centres at integers), in [0, 1];
+/// None outside `[0, w-1] x [0, h-1]`.
+pub fn bilinear_rgb8(image: &RgbImage, x: f32, y: f32) -> Option<[f32; 3]> {
+    let (w, h) = (image.width() as f32, image.height() as f32);
+    if !(x >= 0.0 && y >= 0.0 && x <= w - 1.0 && y <= h - 1.0) {
+        return None;
+    }
+    let (x0, y0) = (x.floor() as u32, y.floor() as u32);
+    let (x1, y1) = (
+        (x0 + 1).min(image.width() - 1),
+        (y0 + 1).min(image.height() - 1),
+    );
+    let (fx, fy) = (x - x0 as f32, y - y0 as f32);
+    let p = |xx, yy| image.get_pixel(xx, yy).0;
+    let (a, b, c, d) = (p(x0, y0), p(x1, y0), p(x0, y1), p(x1, y1));
+    let mut out = [0f32; 3];
+    for k in 0..3 {
+        let top = a[k] as f32 * (1.0 - fx) + b[k] as f32 * fx;
+        let bottom = c[k] as f32 * (1.0 - fx) + d[k] as f32 * fx;
+        out[k] = (top * (1.0 - fy) + bottom * fy) / 255.0;
+    }
+    Some(out)
+}
+
+impl RgbImage32 {
+    /// Bilinear sample of a float image inside its bounds.
+    pub fn sample(&self, x: f32, y: f32) -> [f32; 3] {
+        let image = self;
+        let w = image.width as usize;
+        let (x0, y0) = (x.floor() as usize, y.floor() as usize);
+        let x1 = (x0 + 1).min(image.width as usize - 1);
+        let y1 = (y0 + 1).min(image.height as usize - 1);
+        let (fx, fy) = (x - x0 as f32, y - y0 as f32);
+        let px = |xx: usize, yy: usize, k: usize| image.pixels[(yy * w + xx) * 3 + k];
+        let mut out = [0f32; 3];
+        for (k, o) in out.iter_mut().enumerate() {
+            let top = px(x0, y0, k) * (1.0 - fx) + px(x1, y0, k) * fx;
+            let bottom = px(x0, y1, k) * (1.0 - fx) + px(x1, y1, k) * fx;
+            *o = top * (1.0 - fy) + bottom * fy;
+        }
+        out
     }
 }

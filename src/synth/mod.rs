@@ -15,7 +15,7 @@ use rand::{Rng, SeedableRng};
 
 use crate::geometry::Pose;
 use crate::imaging::{RgbImage32, resize_rgb};
-pub use sampler::{bilinear, warp_search_window};
+pub use sampler::warp_search_window;
 
 /// Transformation levels of the paper: rotation always U(−180°, 180°), independent scales in a
 /// range.
@@ -435,7 +435,7 @@ mod tests {
                     a as f32 - (tw as f32 - 1.0) / 2.0,
                     b as f32 - (th as f32 - 1.0) / 2.0,
                 );
-                let s = sampler::sample_f32(&pair.search, x, y);
+                let s = pair.search.sample(x, y);
                 let t = &pair.template.pixels[(b * tw + a) * 3..(b * tw + a) * 3 + 3];
                 total += (0..3).map(|k| (s[k] - t[k]).abs()).sum::<f32>() / 3.0;
                 count += 1;

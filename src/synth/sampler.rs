@@ -1,33 +1,10 @@
-//! Geometric sampling for the synthetic pairs: bilinear reads and the inverse pose map.
+//! Geometric sampling for the synthetic pairs: the search window under a pose and pasting a
+//! template at a pose (the pixel reads are `imaging`'s).
 
 use image::RgbImage;
 
 use crate::geometry::Pose;
-use crate::imaging::RgbImage32;
-
-/// Bilinear sample of an 8-bit RGB image at `(x, y)` (pixel centres at integers), in [0, 1];
-/// None outside `[0, w-1] x [0, h-1]`.
-pub fn bilinear(image: &RgbImage, x: f32, y: f32) -> Option<[f32; 3]> {
-    let (w, h) = (image.width() as f32, image.height() as f32);
-    if !(x >= 0.0 && y >= 0.0 && x <= w - 1.0 && y <= h - 1.0) {
-        return None;
-    }
-    let (x0, y0) = (x.floor() as u32, y.floor() as u32);
-    let (x1, y1) = (
-        (x0 + 1).min(image.width() - 1),
-        (y0 + 1).min(image.height() - 1),
-    );
-    let (fx, fy) = (x - x0 as f32, y - y0 as f32);
-    let p = |xx, yy| image.get_pixel(xx, yy).0;
-    let (a, b, c, d) = (p(x0, y0), p(x1, y0), p(x0, y1), p(x1, y1));
-    let mut out = [0f32; 3];
-    for k in 0..3 {
-        let top = a[k] as f32 * (1.0 - fx) + b[k] as f32 * fx;
-        let bottom = c[k] as f32 * (1.0 - fx) + d[k] as f32 * fx;
-        out[k] = (top * (1.0 - fy) + bottom * fy) / 255.0;
-    }
-    Some(out)
-}
+use crate::imaging::{RgbImage32, bilinear_rgb8};
 
 /// Inverse of the pose map with unit scales: a search offset `(p, q)` from the object centre
 /// back to the source offset (template orientation).
@@ -48,13 +25,13 @@ pub fn warp_search_window(
     let last = side as f32 - 1.0;
     for (i, j) in [(0.0, 0.0), (last, 0.0), (0.0, last), (last, last)] {
         let (u, v) = unrotate(pose.angle_deg, i - pose.x, j - pose.y);
-        bilinear(photo, centre.0 + u, centre.1 + v)?;
+        bilinear_rgb8(photo, centre.0 + u, centre.1 + v)?;
     }
     let mut pixels = Vec::with_capacity((side * side * 3) as usize);
     for j in 0..side {
         for i in 0..side {
             let (u, v) = unrotate(pose.angle_deg, i as f32 - pose.x, j as f32 - pose.y);
-            let rgb = bilinear(photo, centre.0 + u, centre.1 + v)?;
+            let rgb = bilinear_rgb8(photo, centre.0 + u, centre.1 + v)?;
             pixels.extend_from_slice(&rgb);
         }
     }
@@ -79,26 +56,9 @@ pub fn paste(canvas: &mut RgbImage32, template: &RgbImage32, pose: &Pose) {
             if tx < -0.5 || ty < -0.5 || tx > tw - 0.5 || ty > th - 0.5 {
                 continue;
             }
-            let rgb = sample_f32(template, tx.clamp(0.0, tw - 1.0), ty.clamp(0.0, th - 1.0));
+            let rgb = template.sample(tx.clamp(0.0, tw - 1.0), ty.clamp(0.0, th - 1.0));
             let k = ((j as u32 * canvas.width + i as u32) * 3) as usize;
             canvas.pixels[k..k + 3].copy_from_slice(&rgb);
         }
     }
-}
-
-/// Bilinear sample of a float image inside its bounds.
-pub(crate) fn sample_f32(image: &RgbImage32, x: f32, y: f32) -> [f32; 3] {
-    let w = image.width as usize;
-    let (x0, y0) = (x.floor() as usize, y.floor() as usize);
-    let x1 = (x0 + 1).min(image.width as usize - 1);
-    let y1 = (y0 + 1).min(image.height as usize - 1);
-    let (fx, fy) = (x - x0 as f32, y - y0 as f32);
-    let px = |xx: usize, yy: usize, k: usize| image.pixels[(yy * w + xx) * 3 + k];
-    let mut out = [0f32; 3];
-    for (k, o) in out.iter_mut().enumerate() {
-        let top = px(x0, y0, k) * (1.0 - fx) + px(x1, y0, k) * fx;
-        let bottom = px(x0, y1, k) * (1.0 - fx) + px(x1, y1, k) * fx;
-        *o = top * (1.0 - fy) + bottom * fy;
-    }
-    out
 }

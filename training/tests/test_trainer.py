@@ -39,7 +39,7 @@ def bank():
 
 
 def numpy_bilinear(photo, x, y):
-    """src/synth/sampler.rs `bilinear` in float64."""
+    """`imaging::bilinear_rgb8` (src/imaging/rgb.rs) in float64."""
     h, w = photo.shape[:2]
     x0, y0 = int(math.floor(x)), int(math.floor(y))
     x1, y1 = min(x0 + 1, w - 1), min(y0 + 1, h - 1)
