@@ -12,9 +12,10 @@ pub struct AngleRange {
 impl AngleRange {
     /// From the inclusive bounds `a..=b` in degrees, `a <= b`, `b - a <= 360`.
     pub fn from_bounds(a: f32, b: f32) -> Result<Self, String> {
-        if !(a.is_finite() && b.is_finite()) || b < a || b - a > 360.0 {
+        let bounded = |v: f32| (-720.0..=720.0).contains(&v);
+        if !(bounded(a) && bounded(b)) || b < a || b - a > 360.0 {
             return Err(format!(
-                "angle range {a},{b} is invalid: give START,END in degrees with START <= END and END - START <= 360"
+                "angle range {a},{b} is invalid: give START,END in degrees within [-720, 720] with START <= END and END - START <= 360"
             ));
         }
         Ok(Self {

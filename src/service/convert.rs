@@ -134,6 +134,12 @@ pub fn options_from_proto(
     if let Some((name, value)) = finite.iter().find(|(_, v)| !v.is_finite()) {
         return invalid(format!("options.{name} is {value}; give a finite number"));
     }
+    if !(-360.0..=360.0).contains(&o.angle_start_deg) {
+        return invalid(format!(
+            "options.angle_start_deg {} is out of range: give degrees in [-360, 360]",
+            o.angle_start_deg
+        ));
+    }
     let angle_range = match o.angle_extent_deg {
         0.0 => None,
         e if !(0.0..=360.0).contains(&e) => {
@@ -359,6 +365,14 @@ mod tests {
                 ..Default::default()
             })
             .contains("angle_extent_deg")
+        );
+        assert!(
+            bad(proto::MatchOptions {
+                angle_start_deg: 1e30,
+                angle_extent_deg: 20.0,
+                ..Default::default()
+            })
+            .contains("angle_start_deg")
         );
         assert!(
             bad(proto::MatchOptions {
