@@ -379,6 +379,52 @@ async fn match_and_stream_answer_with_request_ids_and_timings() {
 }
 
 #[tokio::test(flavor = "multi_thread", worker_threads = 2)]
+async fn an_oversize_stream_frame_ends_the_stream_with_a_status() {
+    let dir = tempfile::tempdir().unwrap();
+    let (server, mut client) = start(
+        &settings(dir.path(), &[("max_message_bytes", "1048576")]),
+        untrained_model(),
+    )
+    .await;
+    client
+        .register_template(register_request("t", template_png(1)))
+        .await
+        .unwrap();
+    let image = png(&scene(160, 128, 1));
+    // A frame over max_message_bytes ends the stream with a status naming the frame, not OK.
+    let mut oversize = match_request("t", Vec::new(), "too-big-2");
+    oversize.image = Some(proto::Image {
+        data: Some(Data::Raw(proto::RawImage {
+            width: 1024,
+            height: 1024,
+            format: Format::Bgr8 as i32,
+            pixels: vec![7; 1024 * 1024 * 3],
+        })),
+    });
+    let requests = vec![
+        match_request("t", image.clone(), "ok-1"),
+        oversize,
+        match_request("t", image.clone(), "never-3"),
+    ];
+    let mut stream = client
+        .match_stream(tokio_stream::iter(requests))
+        .await
+        .unwrap()
+        .into_inner();
+    let mut answered = Vec::new();
+    let error = loop {
+        match stream.message().await {
+            Ok(Some(answer)) => answered.push(answer.request_id),
+            Ok(None) => panic!("the stream ended OK after {answered:?}"),
+            Err(status) => break status,
+        }
+    };
+    assert!(!answered.contains(&"never-3".to_string()), "{answered:?}");
+    assert!(error.message().contains("frame 2"), "{error:?}");
+    server.shutdown(Duration::from_secs(5)).await;
+}
+
+#[tokio::test(flavor = "multi_thread", worker_threads = 2)]
 async fn bad_requests_get_a_status_that_says_what_to_fix() {
     let dir = tempfile::tempdir().unwrap();
     let (server, mut client) = start(

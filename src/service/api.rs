@@ -307,11 +307,28 @@ impl PoseMatcher for Api {
             match_defaults: self.match_defaults.clone(),
         };
         tokio::spawn(async move {
+            let mut frame = 0usize;
             while let Some(next) = inbound.next().await {
+                frame += 1;
                 let request = match next {
                     Ok(request) => request,
                     Err(status) => {
-                        tracing::debug!(%status, "match stream ended by the client");
+                        // A frame the transport could not take (too large, malformed): the
+                        // client hears why and which frame, instead of a stream that ends OK.
+                        tracing::debug!(%status, frame, "match stream input failed");
+                        let hint = if status.code() == tonic::Code::OutOfRange
+                            || status.message().contains("too large")
+                        {
+                            "; send smaller frames or raise max_message_bytes"
+                        } else {
+                            ""
+                        };
+                        let _ = sender
+                            .send(Err(Status::new(
+                                status.code(),
+                                format!("frame {frame}: {}{hint}", status.message()),
+                            )))
+                            .await;
                         break;
                     }
                 };
