@@ -189,11 +189,13 @@ fn model_loop(
         let now = Instant::now();
         let mut live = Vec::with_capacity(batch.len());
         for (work, queued_at) in batch.drain(..) {
-            if work.reply.is_closed() {
-                metrics.dropped.with_label_values(&["client_gone"]).inc();
-            } else if work.deadline.is_some_and(|d| d <= now) {
+            // The deadline first: a client whose deadline passed has usually hung up too, and
+            // the reason to count is the deadline.
+            if work.deadline.is_some_and(|d| d <= now) {
                 metrics.dropped.with_label_values(&["deadline"]).inc();
                 let _ = work.reply.send(Err(BatchError::DeadlineExceeded));
+            } else if work.reply.is_closed() {
+                metrics.dropped.with_label_values(&["client_gone"]).inc();
             } else {
                 live.push((work, queued_at));
             }
