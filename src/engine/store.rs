@@ -67,19 +67,33 @@ impl TemplateStore {
         fs::create_dir_all(dir).map_err(io_error(dir))?;
         let mut metas = Vec::new();
         let mut images = Vec::new();
+        // Images beside unreadable metadata: not proven unacknowledged, so never removed.
+        let mut kept = std::collections::HashSet::new();
         for entry in fs::read_dir(dir).map_err(io_error(dir))? {
             let path = entry.map_err(io_error(dir))?.path();
             let name = path.file_name().and_then(|n| n.to_str()).unwrap_or("");
             if name.starts_with(".tmp-") {
                 let _ = fs::remove_file(&path);
             } else if name.ends_with(".json") {
-                let text = fs::read_to_string(&path).map_err(io_error(&path))?;
-                let meta: TemplateMeta =
-                    serde_json::from_str(&text).map_err(|e| StoreError::Corrupt {
-                        path: path.clone(),
-                        message: e.to_string(),
-                    })?;
-                metas.push(meta);
+                // A foreign or damaged file (a `notes.json`, a zero-byte file) must not stop
+                // the service: it is skipped with a warning and left alone, and so is the image
+                // beside it, in case an operator can repair it.
+                let parsed = fs::read_to_string(&path)
+                    .map_err(|e| e.to_string())
+                    .and_then(|text| {
+                        serde_json::from_str::<TemplateMeta>(&text).map_err(|e| e.to_string())
+                    });
+                match parsed {
+                    Ok(meta) => metas.push(meta),
+                    Err(message) => {
+                        tracing::warn!(
+                            path = %path.display(),
+                            %message,
+                            "skipping a file in the template directory that is not template metadata"
+                        );
+                        kept.insert(path.with_extension("png"));
+                    }
+                }
             } else if name.ends_with(".png") {
                 images.push(path);
             }
@@ -92,7 +106,7 @@ impl TemplateStore {
             .map(|m| store.image_path(&m.template_id))
             .collect();
         for image in images {
-            if !committed.contains(&image) {
+            if !committed.contains(&image) && !kept.contains(&image) {
                 let _ = fs::remove_file(&image);
             }
         }
@@ -256,6 +270,27 @@ mod tests {
         assert_eq!(metas.len(), 1);
         assert_eq!(metas[0].template_id, "b");
         assert_eq!(fs::read_dir(dir.path()).unwrap().count(), 2);
+    }
+
+    #[test]
+    fn foreign_or_damaged_metadata_is_skipped_and_kept() {
+        let dir = tempfile::tempdir().unwrap();
+        let (store, _) = TemplateStore::open(dir.path()).unwrap();
+        let img = image(3);
+        store.save(&meta("good", &img), &img).unwrap();
+        fs::write(dir.path().join("notes.json"), br#"{"owner": "line 4"}"#).unwrap();
+        fs::write(dir.path().join("damaged.json"), b"").unwrap();
+        fs::write(
+            dir.path().join("damaged.png"),
+            b"pixels an operator may want back",
+        )
+        .unwrap();
+        let (_, metas) = TemplateStore::open(dir.path()).unwrap();
+        assert_eq!(metas.len(), 1);
+        assert_eq!(metas[0].template_id, "good");
+        for name in ["notes.json", "damaged.json", "damaged.png"] {
+            assert!(dir.path().join(name).exists(), "{name} was removed");
+        }
     }
 
     #[test]
