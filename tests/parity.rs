@@ -4,47 +4,12 @@
 //! Tolerances (issue #2): every element within max(1e-4, 1e-5 × the tensor's largest magnitude);
 //! the five heads within 1e-4 absolute. Skips, saying why, when `../shared/reference` is absent.
 
-use std::path::PathBuf;
+mod common;
 
 use burn::prelude::*;
+use common::{read_f32, reference_dir, tensor};
 use posematch::model::{MatchMaps, Tdcm, available_backends, load_weights, set_fused_cpu_kernels};
 use safetensors::SafeTensors;
-
-fn reference_dir() -> Option<PathBuf> {
-    let dir = PathBuf::from(env!("CARGO_MANIFEST_DIR")).join("../shared/reference");
-    if dir.join("tdcm-parity.safetensors").is_file() {
-        Some(dir)
-    } else {
-        assert!(
-            std::env::var_os("POSEMATCH_REQUIRE_REFERENCE").is_none(),
-            "{} is required here (POSEMATCH_REQUIRE_REFERENCE is set): put the reference files beside the checkout",
-            dir.display()
-        );
-        eprintln!(
-            "SKIPPED: {} is absent, so parity with the official checkpoint cannot be checked",
-            dir.display()
-        );
-        None
-    }
-}
-
-fn read_f32(st: &SafeTensors, name: &str) -> (Vec<f32>, Vec<usize>) {
-    let view = st
-        .tensor(name)
-        .unwrap_or_else(|e| panic!("fixture {name}: {e}"));
-    assert_eq!(view.dtype(), safetensors::Dtype::F32, "{name}");
-    let values = view
-        .data()
-        .chunks_exact(4)
-        .map(|b| f32::from_le_bytes([b[0], b[1], b[2], b[3]]))
-        .collect();
-    (values, view.shape().to_vec())
-}
-
-fn tensor(st: &SafeTensors, name: &str, device: &Device) -> Tensor<4> {
-    let (values, shape) = read_f32(st, name);
-    Tensor::from_data(TensorData::new(values, shape), device)
-}
 
 /// Compares, returns a failure description or None.
 fn compare(st: &SafeTensors, name: &str, actual: Tensor<4>, absolute_only: bool) -> Option<String> {

@@ -10,6 +10,7 @@ mod common;
 use std::path::PathBuf;
 
 use burn::prelude::*;
+use common::{read_f32, tensor};
 use posematch::geometry::Pose;
 use posematch::model::{Tdcm, load_weights, set_fused_cpu_kernels};
 use posematch::train::LabelMaps;
@@ -19,24 +20,6 @@ const TOLERANCE: f32 = 1e-4;
 
 fn fixtures() -> PathBuf {
     PathBuf::from(env!("CARGO_MANIFEST_DIR")).join("training/fixtures")
-}
-
-fn read_f32(st: &SafeTensors, name: &str) -> (Vec<f32>, Vec<usize>) {
-    let view = st
-        .tensor(name)
-        .unwrap_or_else(|e| panic!("fixture {name}: {e}"));
-    assert_eq!(view.dtype(), safetensors::Dtype::F32, "{name}");
-    let values = view
-        .data()
-        .chunks_exact(4)
-        .map(|b| f32::from_le_bytes([b[0], b[1], b[2], b[3]]))
-        .collect();
-    (values, view.shape().to_vec())
-}
-
-fn tensor(st: &SafeTensors, name: &str, device: &Device) -> Tensor<4> {
-    let (values, shape) = read_f32(st, name);
-    Tensor::from_data(TensorData::new(values, shape), device)
 }
 
 /// Largest absolute difference, and where.

@@ -30,6 +30,30 @@ pub fn reference_dir() -> Option<PathBuf> {
     }
 }
 
+/// A float32 tensor of a safetensors fixture: values and shape.
+pub fn read_f32(st: &SafeTensors, name: &str) -> (Vec<f32>, Vec<usize>) {
+    let view = st
+        .tensor(name)
+        .unwrap_or_else(|e| panic!("fixture {name}: {e}"));
+    assert_eq!(view.dtype(), safetensors::Dtype::F32, "{name}");
+    let values = view
+        .data()
+        .chunks_exact(4)
+        .map(|b| f32::from_le_bytes([b[0], b[1], b[2], b[3]]))
+        .collect();
+    (values, view.shape().to_vec())
+}
+
+/// A 4-d float32 fixture tensor on `device`.
+pub fn tensor(
+    st: &SafeTensors,
+    name: &str,
+    device: &burn::prelude::Device,
+) -> burn::prelude::Tensor<4> {
+    let (values, shape) = read_f32(st, name);
+    burn::prelude::Tensor::from_data(burn::prelude::TensorData::new(values, shape), device)
+}
+
 pub fn read_fixture(dir: &Path) -> Vec<u8> {
     std::fs::read(dir.join("tdcm-parity.safetensors")).expect("fixture file readable")
 }
