@@ -88,9 +88,8 @@ fn benches(c: &mut Criterion) {
     group.bench_function("template_encode_36", |b| {
         b.iter(|| {
             matcher
-                .model()
-                .template_encoder
-                .forward(template_input.clone())
+                .network()
+                .encode_templates(template_input.clone())
                 .into_data()
         })
     });
@@ -107,10 +106,7 @@ fn benches(c: &mut Criterion) {
             &batch,
             |b, _| {
                 b.iter(|| {
-                    let maps = matcher
-                        .model()
-                        .search_matcher
-                        .forward(images.clone(), kernels.clone());
+                    let maps = matcher.network().forward(images.clone(), kernels.clone());
                     maps.stacked.into_data()
                 })
             },
@@ -123,8 +119,7 @@ fn benches(c: &mut Criterion) {
         &device,
     );
     let maps: Vec<f32> = matcher
-        .model()
-        .search_matcher
+        .network()
         .forward(images, encoded.kernel.clone())
         .stacked
         .into_data()
@@ -195,7 +190,9 @@ fn benches(c: &mut Criterion) {
     let options = MatchOptions {
         refine: false,
         ..MatchOptions::default()
-    };
+    }
+    .validate()
+    .unwrap();
     for side in [224u32, 1024, 2048] {
         let image = frame(side, side);
         if side > 224 {

@@ -68,7 +68,9 @@ fn best_peak(matcher: &Matcher, encoded: &EncodedTemplate, pair: &SyntheticPair)
         min_score: Some(posematch::evaluation::ANY_PEAK),
         refine: false,
         ..MatchOptions::default()
-    };
+    }
+    .validate()
+    .unwrap();
     let outcome = matcher.match_one(encoded, &pair.search, &options).unwrap();
     let (tw, th) = (pair.template.width as f32, pair.template.height as f32);
     select(outcome.poses, &options, tw, th).into_iter().next()
@@ -86,7 +88,9 @@ fn verified(matcher: &Matcher, pair: &SyntheticPair) -> (Option<Pose>, MatchTimi
     let options = MatchOptions {
         max_instances: 1,
         ..MatchOptions::default()
-    };
+    }
+    .validate()
+    .unwrap();
     let encoded = matcher.encode_template(&pair.template).unwrap();
     let outcome = matcher.match_one(&encoded, &pair.search, &options).unwrap();
     (outcome.poses.into_iter().next(), outcome.timings)

@@ -10,7 +10,7 @@ static ALLOCATOR: mimalloc::MiMalloc = mimalloc::MiMalloc;
 
 use burn::prelude::*;
 use burn::tensor::Distribution;
-use posematch::model::{TdcmConfig, depthwise_correlation, select_device};
+use posematch::model::{InferenceNetwork, TdcmConfig, depthwise_correlation, select_device};
 
 fn time<F: FnMut() -> Tensor<4>>(name: &str, runs: usize, mut f: F) -> Tensor<4> {
     // flex executes eagerly: an op's cost is paid when the call returns (views such as permute
@@ -35,6 +35,8 @@ fn main() {
     let device = select_device().unwrap();
     let model = TdcmConfig::new().init(&device);
     let m = &model.search_matcher;
+    // What the matcher runs: the host CPU kernels on flex/ndarray.
+    let network = InferenceNetwork::new(model.clone(), &device);
     let runs = 10;
     let images = Tensor::<4>::random(
         [batch, 3, 224, 224],
@@ -43,11 +45,11 @@ fn main() {
     );
     let template = Tensor::<4>::random([batch, 3, 36, 36], Distribution::Normal(0.0, 1.0), &device);
     let kernels = time("template encoder", runs, || {
-        model.template_encoder.forward(template.clone())
+        network.encode_templates(template.clone())
     });
     if whole_only {
         let _ = time("whole search forward", 30, || {
-            m.forward(images.clone(), kernels.clone()).stacked
+            network.forward(images.clone(), kernels.clone()).stacked
         });
         return;
     }
@@ -166,6 +168,6 @@ fn main() {
         });
     }
     let _ = time("whole search forward", runs, || {
-        m.forward(images.clone(), kernels.clone()).stacked
+        network.forward(images.clone(), kernels.clone()).stacked
     });
 }

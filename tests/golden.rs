@@ -15,7 +15,7 @@ use posematch::model::WeightsSource;
 use posematch::synth::{Level, PairSpec, PhotoSet, make_pair};
 use serde_json::{Value, json};
 
-/// Pixel and heatmap tolerances: the fused CPU kernels sum in a machine-dependent order.
+/// Pixel and heatmap tolerances: the host CPU kernels sum in a machine-dependent order.
 const POSITION_TOLERANCE: f64 = 0.05;
 const VALUE_TOLERANCE: f64 = 2e-3;
 const ANGLE_TOLERANCE: f64 = 0.5;
@@ -42,7 +42,9 @@ fn current_output() -> Value {
         min_score: Some(0.01),
         max_instances: 3,
         ..MatchOptions::default()
-    };
+    }
+    .validate()
+    .unwrap();
     let pairs: Vec<Value> = (0..3)
         .map(|index| {
             let pair = make_pair(&photos, &spec, 5, index).unwrap();

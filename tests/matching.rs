@@ -105,7 +105,9 @@ fn single_instance_pose_is_close_to_ground_truth() {
     let options = MatchOptions {
         max_instances: 1,
         ..MatchOptions::default()
-    };
+    }
+    .validate()
+    .unwrap();
     let poses = matcher
         .match_one(&template, &search, &options)
         .unwrap()
@@ -123,9 +125,13 @@ fn single_instance_pose_is_close_to_ground_truth() {
         "{p:?}"
     );
     // A scale range that excludes the object removes it; one that includes it keeps it.
-    let narrow = |lo, hi| MatchOptions {
-        scale_range: Some(ScaleRange::new(lo, hi).unwrap()),
-        ..options.clone()
+    let narrow = |lo, hi| {
+        MatchOptions {
+            scale_range: Some(ScaleRange::new(lo, hi).unwrap()),
+            ..(*options).clone()
+        }
+        .validate()
+        .unwrap()
     };
     let kept = matcher
         .match_one(&template, &search, &narrow(0.7, 1.5))
@@ -150,7 +156,9 @@ fn tiling_finds_the_same_instances_as_a_whole_pass() {
     let options = MatchOptions {
         max_instances: 100,
         ..MatchOptions::default()
-    };
+    }
+    .validate()
+    .unwrap();
     let whole = matcher(&dir).with_max_whole_pixels(2_000_000);
     let template = whole.encode_template(&template_image).unwrap();
     let whole_poses = whole.match_one(&template, &frame, &options).unwrap().poses;

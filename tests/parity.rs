@@ -8,7 +8,7 @@ mod common;
 
 use burn::prelude::*;
 use common::{read_f32, reference_dir, tensor};
-use posematch::model::{MatchMaps, Tdcm, available_backends, load_weights, set_fused_cpu_kernels};
+use posematch::model::{InferenceNetwork, MatchMaps, available_backends, load_weights};
 use safetensors::SafeTensors;
 
 /// Compares, returns a failure description or None.
@@ -45,14 +45,14 @@ fn compare(st: &SafeTensors, name: &str, actual: Tensor<4>, absolute_only: bool)
     })
 }
 
-fn check_backend(device: &Device, model: &Tdcm, st: &SafeTensors) -> Vec<String> {
+fn check_backend(device: &Device, network: &InferenceNetwork, st: &SafeTensors) -> Vec<String> {
     let mut failures = Vec::new();
     for pair in ["a", "b1", "b2"] {
         let n = |s: &str| format!("{pair}.{s}");
         let template = tensor(st, &n("template"), device);
         let search = tensor(st, &n("search"), device);
-        let (kernels, template_trace) = model.template_encoder.forward_traced(template);
-        let (maps, trace) = model.search_matcher.forward_traced(search, kernels.clone());
+        let (kernels, template_trace) = network.encode_templates_traced(template);
+        let (maps, trace) = network.forward_traced(search, kernels.clone());
         let checks: Vec<(&str, Tensor<4>, bool)> = vec![
             ("backbone_T_stem", template_trace.stem, false),
             ("backbone_T", kernels, false),
@@ -88,28 +88,28 @@ fn network_reproduces_every_fixture_tensor_on_every_backend() {
             "ndarray" => Device::ndarray(),
             _ => Device::flex(),
         };
-        // Both weight files, and both inference paths: the fused CPU kernels (what runs in
-        // production on the CPU) and burn's generic modules (what training and GPUs run).
-        for (weights, fused) in [
+        // Both weight files, and both inference paths, each chosen explicitly: the host CPU
+        // kernels (what the matcher runs on the CPU) and burn's modules (what training and GPUs
+        // run).
+        for (weights, host) in [
             ("tdcm-official.pth", true),
             ("tdcm-official.safetensors", true),
             ("tdcm-official.pth", false),
         ] {
-            set_fused_cpu_kernels(fused);
-            let path = if fused {
-                "fused CPU kernels"
-            } else {
-                "generic burn modules"
-            };
-            println!("--- backend {backend}, weights {weights}, {path}");
             let model = load_weights(&dir.join(weights), &device).expect("official weights load");
+            let (network, path) = if host {
+                (InferenceNetwork::host(model), "host CPU kernels")
+            } else {
+                (InferenceNetwork::modules(model), "burn modules")
+            };
+            assert_eq!(network.runs_host_kernels(), host);
+            println!("--- backend {backend}, weights {weights}, {path}");
             failures.extend(
-                check_backend(&device, &model, &st)
+                check_backend(&device, &network, &st)
                     .into_iter()
                     .map(|f| format!("[{backend}, {weights}, {path}] {f}")),
             );
         }
-        set_fused_cpu_kernels(true);
     }
     assert!(
         failures.is_empty(),

@@ -77,7 +77,9 @@ fn refinement_sharpens_the_official_network_and_never_loses_an_object() {
         min_score: Some(0.01),
         refine: false,
         ..MatchOptions::default()
-    };
+    }
+    .validate()
+    .unwrap();
     let (mut coarse_hits, mut refined_hits, mut lost) = (0, 0, 0);
     let (mut coarse_angle, mut refined_angle) = (0.0, 0.0);
     let pairs = 16;
@@ -133,7 +135,9 @@ fn three_paths(matcher: &Matcher, pairs: u64) -> [usize; 3] {
     let options = MatchOptions {
         max_instances: 1,
         ..MatchOptions::default()
-    };
+    }
+    .validate()
+    .unwrap();
     let mut found = [0; 3];
     for index in 0..pairs {
         let pair = make_pair(&photos, &spec(), 3, index).unwrap();

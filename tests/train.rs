@@ -8,7 +8,7 @@ use std::time::Duration;
 use burn::prelude::*;
 use common::structured_photo_dir;
 use posematch::imaging::{InputConvention, RgbImage32};
-use posematch::matcher::{MatchOptions, Matcher};
+use posematch::matcher::{Matcher, ValidOptions};
 use posematch::model::load_weights;
 use posematch::synth::Level;
 use posematch::train::{TrainEvent, TrainOptions, train};
@@ -108,7 +108,7 @@ fn training_lowers_the_loss_checkpoints_and_resumes() {
     let image = RgbImage32::new(96, 96, vec![0.5; 96 * 96 * 3]);
     let encoded = matcher.encode_template(&template).unwrap();
     matcher
-        .match_one(&encoded, &image, &MatchOptions::default())
+        .match_one(&encoded, &image, &ValidOptions::default())
         .unwrap();
 }
 

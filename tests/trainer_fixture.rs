@@ -12,7 +12,7 @@ use std::path::PathBuf;
 use burn::prelude::*;
 use common::{read_f32, tensor};
 use posematch::geometry::Pose;
-use posematch::model::{Tdcm, load_weights, set_fused_cpu_kernels};
+use posematch::model::{InferenceNetwork, load_weights};
 use posematch::train::LabelMaps;
 use safetensors::SafeTensors;
 
@@ -39,12 +39,9 @@ fn worst(expected: &[f32], actual: &[f32]) -> (usize, f32) {
         })
 }
 
-fn check_maps(model: &Tdcm, st: &SafeTensors, device: &Device, what: &str) {
-    let kernels = model
-        .template_encoder
-        .forward(tensor(st, "template", device));
-    let maps = model
-        .search_matcher
+fn check_maps(network: &InferenceNetwork, st: &SafeTensors, device: &Device, what: &str) {
+    let kernels = network.encode_templates(tensor(st, "template", device));
+    let maps = network
         .forward(tensor(st, "search", device), kernels)
         .stacked;
     let (expected, shape) = read_f32(st, "maps");
@@ -67,16 +64,18 @@ fn trainer_weights_give_our_network_the_trainers_maps() {
     let device = Device::flex();
     let weights = fixtures().join("trainer-weights.pth");
     let model = load_weights(&weights, &device).expect("the trainer's export loads");
-    for fused in [true, false] {
-        set_fused_cpu_kernels(fused);
-        check_maps(
-            &model,
-            &st,
-            &device,
-            &format!("direct, fused kernels {fused}"),
-        );
-    }
-    set_fused_cpu_kernels(true);
+    check_maps(
+        &InferenceNetwork::host(model.clone()),
+        &st,
+        &device,
+        "direct, host CPU kernels",
+    );
+    check_maps(
+        &InferenceNetwork::modules(model),
+        &st,
+        &device,
+        "direct, burn modules",
+    );
 
     // The documented import step: .pth -> our own format, then served from that.
     let dir = tempfile::tempdir().unwrap();
@@ -91,7 +90,12 @@ fn trainer_weights_give_our_network_the_trainers_maps() {
     ]);
     assert_eq!(code, 0, "weights import failed: {stderr}");
     let model = load_weights(&imported, &device).expect("the imported weights load");
-    check_maps(&model, &st, &device, "after `posematch weights import`");
+    check_maps(
+        &InferenceNetwork::new(model, &device),
+        &st,
+        &device,
+        "after `posematch weights import`",
+    );
 }
 
 #[test]

@@ -125,8 +125,9 @@ pub fn run(args: EvalArgs) -> Result<(), CliError> {
         candidate_threshold: args.verification.candidate_threshold,
         max_candidates: args.verification.max_candidates,
         ..MatchOptions::default()
-    };
-    options.validate().map_err(CliError::Usage)?;
+    }
+    .validate()
+    .map_err(CliError::Usage)?;
     let network_min_score = if args.multi_instance {
         NETWORK_MIN_SCORE
     } else {

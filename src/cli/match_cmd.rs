@@ -11,7 +11,9 @@ use serde_json::{Value, json};
 
 use super::{CliError, ModelArgs, load_model, read_image};
 use crate::imaging::{GrayImage32, RgbImage32};
-use crate::matcher::{AngleRange, EncodedTemplate, MatchOptions, Matcher, ScaleRange};
+use crate::matcher::{
+    AngleRange, EncodedTemplate, MatchOptions, Matcher, ScaleRange, ValidOptions,
+};
 
 #[derive(Args, Debug)]
 pub struct MatchArgs {
@@ -79,8 +81,8 @@ fn parse_scale_range(s: &str) -> Result<ScaleRange, String> {
 }
 
 impl MatchArgs {
-    fn options(&self) -> Result<MatchOptions, CliError> {
-        let options = MatchOptions {
+    fn options(&self) -> Result<ValidOptions, CliError> {
+        MatchOptions {
             max_instances: self.max_instances,
             min_score: self.verification.min_score,
             candidate_threshold: self.verification.candidate_threshold,
@@ -89,9 +91,9 @@ impl MatchArgs {
             angle_range: self.angle_range,
             scale_range: self.scale_range,
             refine: !self.no_refine,
-        };
-        options.validate().map_err(CliError::Usage)?;
-        Ok(options)
+        }
+        .validate()
+        .map_err(CliError::Usage)
     }
 }
 
@@ -166,7 +168,7 @@ fn run_pairs(
     matcher: Option<&Matcher>,
     pairs: &Path,
     out: &Path,
-    options: &MatchOptions,
+    options: &ValidOptions,
 ) -> Result<(), CliError> {
     let input = File::open(pairs).map_err(|e| CliError::io(pairs, e))?;
     let base = pairs.parent().unwrap_or(Path::new(".")).to_owned();
@@ -205,7 +207,7 @@ fn match_line(
     matcher: Option<&Matcher>,
     line: &str,
     base: &Path,
-    options: &MatchOptions,
+    options: &ValidOptions,
     templates: &mut HashMap<PathBuf, EncodedTemplate>,
 ) -> (Value, Result<Vec<crate::geometry::Pose>, String>) {
     let record: Value = match serde_json::from_str(line) {
@@ -223,13 +225,17 @@ fn match_line(
     let result = (|| {
         let template_path = path("template")?;
         let image_path = path("image")?;
-        let mut options = options.clone();
-        if let Some(n) = record.get("max_instances") {
-            options.max_instances =
-                n.as_u64()
-                    .ok_or("`max_instances` must be a positive integer")? as usize;
-            options.validate()?;
-        }
+        let options = match record.get("max_instances") {
+            None => options.clone(),
+            Some(n) => MatchOptions {
+                max_instances: n
+                    .as_u64()
+                    .ok_or("`max_instances` must be a positive integer")?
+                    as usize,
+                ..(**options).clone()
+            }
+            .validate()?,
+        };
         let Some(matcher) = matcher else {
             let template = read_image(&template_path).map_err(|e| e.to_string())?;
             let image = read_image(&image_path).map_err(|e| e.to_string())?;

@@ -16,13 +16,13 @@ use tokio::sync::{mpsc, oneshot};
 
 use super::metrics::Metrics;
 use crate::imaging::RgbImage32;
-use crate::matcher::{EncodedTemplate, MatchError, MatchJob, MatchOptions, MatchOutcome, Matcher};
+use crate::matcher::{EncodedTemplate, MatchError, MatchJob, MatchOutcome, Matcher, ValidOptions};
 
 /// One search waiting for the model.
 pub struct MatchWork {
     pub template: Arc<EncodedTemplate>,
     pub image: RgbImage32,
-    pub options: MatchOptions,
+    pub options: ValidOptions,
     /// Dropped unanswered once this has passed.
     pub deadline: Option<Instant>,
     pub reply: oneshot::Sender<Result<BatchAnswer, BatchError>>,

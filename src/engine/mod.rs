@@ -17,7 +17,7 @@ use tokio::sync::{Mutex, oneshot};
 
 use crate::geometry::Pose;
 use crate::imaging::RgbImage32;
-use crate::matcher::{EncodedTemplate, MatchError, MatchOptions, MatchTimings, Matcher};
+use crate::matcher::{EncodedTemplate, MatchError, MatchTimings, Matcher, ValidOptions};
 use batcher::{BatchError, Batcher, EncodeError, MatchWork, SubmitError};
 pub use metrics::Metrics;
 use store::{StoreError, TemplateIndex, TemplateMeta, TemplateStore, content_sha256};
@@ -318,11 +318,10 @@ impl Engine {
         &self,
         template_id: &str,
         image: RgbImage32,
-        options: MatchOptions,
+        options: ValidOptions,
         roi: Option<Roi>,
         deadline: Option<Instant>,
     ) -> Result<MatchAnswer, EngineError> {
-        options.validate().map_err(EngineError::InvalidArgument)?;
         let template = self.kernel(template_id).await?;
         let (image, offset) = match roi {
             None => (image, (0.0, 0.0)),

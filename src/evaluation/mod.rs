@@ -9,7 +9,7 @@ use serde::Serialize;
 use crate::geometry::{Pose, angle_distance_deg, rotated_iou};
 use crate::imaging::GrayImage32;
 use crate::matcher::candidates::{answer, select};
-use crate::matcher::{MatchError, MatchJob, MatchOptions, Matcher, Proposal};
+use crate::matcher::{MatchError, MatchJob, MatchOptions, Matcher, Proposal, ValidOptions};
 use crate::refine::refine_pose;
 use crate::synth::SyntheticPair;
 
@@ -83,7 +83,7 @@ pub struct Paths {
 pub fn match_pair(
     matcher: &Matcher,
     pair: &SyntheticPair,
-    options: &MatchOptions,
+    options: &ValidOptions,
     network_min_score: f32,
     paths: Paths,
 ) -> Result<PairRun, MatchError> {
@@ -91,12 +91,12 @@ pub fn match_pair(
     let encoded = matcher.encode_template(&pair.template)?;
     // One network pass serves all three paths: enough peaks for either.
     let budget = options.candidate_budget();
-    let propose_options = MatchOptions {
+    let propose_options = ValidOptions::derived(MatchOptions {
         candidate_threshold: options.candidate_threshold.min(network_min_score),
         max_candidates: budget.max(4 * options.max_instances + 16),
         refine: true,
-        ..options.clone()
-    };
+        ..(**options).clone()
+    });
     let job = MatchJob {
         template: &encoded,
         image: &pair.search,
@@ -111,7 +111,7 @@ pub fn match_pair(
     let network_options = MatchOptions {
         min_score: Some(network_min_score),
         refine: false,
-        ..options.clone()
+        ..(**options).clone()
     };
     let network: Vec<Pose> = select(
         proposal
@@ -146,10 +146,10 @@ pub fn match_pair(
         });
     }
     let start = Instant::now();
-    let verified_options = MatchOptions {
+    let verified_options = ValidOptions::derived(MatchOptions {
         min_score: Some(f32::MIN_POSITIVE),
-        ..options.clone()
-    };
+        ..(**options).clone()
+    });
     let candidates = proposal
         .candidates
         .into_iter()
@@ -190,7 +190,9 @@ pub fn evaluate_pairs(
     let options = MatchOptions {
         max_instances: 1,
         ..MatchOptions::default()
-    };
+    }
+    .validate()
+    .expect("one instance with default options is valid");
     let (mut network, mut refined) = (Vec::new(), Vec::new());
     for pair in pairs {
         let paths = Paths {

@@ -16,9 +16,9 @@ use burn::prelude::*;
 use crate::geometry::Pose;
 use crate::imaging::GrayImage32;
 use crate::imaging::{InputConvention, RgbImage32, resize_rgb, to_network_input};
-use crate::model::{TEMPLATE_GRID, Tdcm};
+use crate::model::{InferenceNetwork, TEMPLATE_GRID, Tdcm};
 use decode::{MapPlanes, decode_peak, find_peaks};
-pub use options::{AngleRange, MatchOptions, ScaleRange};
+pub use options::{AngleRange, MatchOptions, ScaleRange, ValidOptions};
 use plan::{MAX_NETWORK_PIXELS, MIN_INPUT_SIDE, ScalePass, Tile};
 
 /// Smallest template side we accept (the network sees it on a 36x36 grid; below this there is
@@ -53,8 +53,6 @@ pub enum MatchError {
         hi: f32,
         pixels: u64,
     },
-    #[error("invalid option: {0}")]
-    InvalidOption(String),
 }
 
 /// A template after encoding: what the service caches per template ID.
@@ -73,7 +71,7 @@ pub struct EncodedTemplate {
 pub struct MatchJob<'a> {
     pub template: &'a EncodedTemplate,
     pub image: &'a RgbImage32,
-    pub options: &'a MatchOptions,
+    pub options: &'a ValidOptions,
 }
 
 /// Where the time of one job went.
@@ -109,7 +107,7 @@ pub struct Proposal {
 /// The network and how to feed it. Not thread-safe by design: one owner (a CLI, the service's
 /// model thread) drives it.
 pub struct Matcher {
-    model: Tdcm,
+    network: InferenceNetwork,
     device: Device,
     convention: InputConvention,
     /// Network inputs up to this many pixels run whole; larger ones are tiled.
@@ -125,9 +123,10 @@ struct Piece {
 }
 
 impl Matcher {
+    /// Builds the inference network for `device` once (see [`InferenceNetwork::new`]).
     pub fn new(model: Tdcm, device: Device, convention: InputConvention) -> Self {
         Self {
-            model,
+            network: InferenceNetwork::new(model, &device),
             device,
             convention,
             max_whole_pixels: plan::MAX_WHOLE_PIXELS,
@@ -145,8 +144,8 @@ impl Matcher {
         &self.device
     }
 
-    pub fn model(&self) -> &Tdcm {
-        &self.model
+    pub fn network(&self) -> &InferenceNetwork {
+        &self.network
     }
 
     /// Resizes a template to the network grid and encodes it into its kernels.
@@ -154,7 +153,7 @@ impl Matcher {
         check_template_size(template.width, template.height)?;
         let grid = resize_rgb(template, TEMPLATE_GRID as u32, TEMPLATE_GRID as u32);
         let input = to_network_input(&[&grid], self.convention, &self.device);
-        let kernel = self.model.template_encoder.forward(input);
+        let kernel = self.network.encode_templates(input);
         Ok(EncodedTemplate {
             width: template.width,
             height: template.height,
@@ -168,7 +167,7 @@ impl Matcher {
         &self,
         template: &EncodedTemplate,
         image: &RgbImage32,
-        options: &MatchOptions,
+        options: &ValidOptions,
     ) -> Result<MatchOutcome, MatchError> {
         self.match_many(&[MatchJob {
             template,
@@ -257,7 +256,7 @@ impl Matcher {
                 .collect(),
             0,
         );
-        let stacked = self.model.search_matcher.forward(images, kernels).stacked; // [b, 5, H, W]
+        let stacked = self.network.forward(images, kernels).stacked; // [b, 5, H, W]
         let [b, _, h, w] = stacked.dims();
         let values: Vec<f32> = stacked
             .into_data()
@@ -299,13 +298,12 @@ pub fn check_pair_sizes(tw: u32, th: u32, iw: u32, ih: u32) -> Result<(), MatchE
     Ok(())
 }
 
-/// Validates a job and cuts it into network pieces.
+/// Checks a job's sizes and cuts it into network pieces.
 fn prepare(
     index: usize,
     job: &MatchJob,
     max_whole_pixels: usize,
 ) -> Result<Vec<Piece>, MatchError> {
-    job.options.validate().map_err(MatchError::InvalidOption)?;
     let (tw, th) = (job.template.width, job.template.height);
     let (iw, ih) = (job.image.width, job.image.height);
     check_pair_sizes(tw, th, iw, ih)?;

@@ -1,5 +1,9 @@
 //! What a caller may ask of one match, with defaults and validation shared by the CLI and the
-//! service.
+//! service. Options are checked once, where they enter (CLI arguments, settings, a gRPC
+//! request): [`MatchOptions::validate`] turns them into [`ValidOptions`], the only form the
+//! engine and the matcher accept, so nothing below the boundary checks them again.
+
+use std::ops::Deref;
 
 /// Restricts answers to angles in `[start, start + extent]` (degrees, counter-clockwise).
 #[derive(Debug, Clone, Copy, PartialEq)]
@@ -156,7 +160,12 @@ impl MatchOptions {
     }
 
     /// Checks every field; the message says what to change.
-    pub fn validate(&self) -> Result<(), String> {
+    pub fn validate(self) -> Result<ValidOptions, String> {
+        self.check()?;
+        Ok(ValidOptions(self))
+    }
+
+    fn check(&self) -> Result<(), String> {
         if self.max_instances == 0 || self.max_instances > MAX_INSTANCES_LIMIT {
             return Err(format!(
                 "max_instances {} is invalid: use 1..={MAX_INSTANCES_LIMIT}",
@@ -189,5 +198,89 @@ impl MatchOptions {
             ));
         }
         Ok(())
+    }
+}
+
+/// [`MatchOptions`] that passed [`MatchOptions::validate`]. Read-only (it dereferences to the
+/// options); to change a field, take the options out ([`ValidOptions::into_inner`]) and validate
+/// again.
+#[derive(Debug, Clone, PartialEq)]
+pub struct ValidOptions(MatchOptions);
+
+impl ValidOptions {
+    pub fn into_inner(self) -> MatchOptions {
+        self.0
+    }
+
+    /// Options derived inside the crate from validated ones, with a field deliberately outside
+    /// the public range (evaluation asks for every peak, however weak). Never for caller input.
+    pub(crate) fn derived(options: MatchOptions) -> Self {
+        Self(options)
+    }
+}
+
+impl Default for ValidOptions {
+    fn default() -> Self {
+        MatchOptions::default()
+            .validate()
+            .expect("the default options are valid")
+    }
+}
+
+impl Deref for ValidOptions {
+    type Target = MatchOptions;
+
+    fn deref(&self) -> &MatchOptions {
+        &self.0
+    }
+}
+
+#[cfg(test)]
+mod tests {
+    use super::*;
+
+    #[test]
+    fn defaults_are_valid_and_each_absurd_field_is_refused_by_name() {
+        assert_eq!(*ValidOptions::default(), MatchOptions::default());
+        let refused = |options: MatchOptions, field: &str| {
+            let message = options.validate().unwrap_err();
+            assert!(message.starts_with(field), "{field}: {message}");
+        };
+        let d = MatchOptions::default;
+        refused(
+            MatchOptions {
+                max_instances: 0,
+                ..d()
+            },
+            "max_instances",
+        );
+        refused(
+            MatchOptions {
+                min_score: Some(1.5),
+                ..d()
+            },
+            "min_score",
+        );
+        refused(
+            MatchOptions {
+                candidate_threshold: f32::NAN,
+                ..d()
+            },
+            "candidate_threshold",
+        );
+        refused(
+            MatchOptions {
+                max_candidates: MAX_CANDIDATES_LIMIT + 1,
+                ..d()
+            },
+            "max_candidates",
+        );
+        refused(
+            MatchOptions {
+                max_overlap: -0.1,
+                ..d()
+            },
+            "max_overlap",
+        );
     }
 }

@@ -1,8 +1,6 @@
 //! Backend selection at run time. burn panics on an unknown `BURN_DEVICE`; a factory operator
 //! deserves an error that lists what this binary was built with.
 
-use std::sync::atomic::{AtomicBool, Ordering};
-
 use burn::prelude::Device;
 
 #[derive(Debug, thiserror::Error)]
@@ -47,20 +45,10 @@ fn device_by_name(name: &str) -> Result<Device, DeviceError> {
     }
 }
 
-/// Whether the fused CPU inference kernels may be used (default: yes).
-static FUSED_CPU_KERNELS: AtomicBool = AtomicBool::new(true);
-
-/// Turns the fused CPU inference kernels (`fused`, `cpu_decoder`) on or off for the whole
-/// process. Off, inference runs burn's generic modules, exactly as training and GPU devices
-/// do; the parity tests check both ways against the official fixtures.
-pub fn set_fused_cpu_kernels(enabled: bool) {
-    FUSED_CPU_KERNELS.store(enabled, Ordering::Relaxed);
-}
-
-/// Whether tensors on `device` live in host memory without autodiff, so that the fused CPU
-/// inference kernels may read and write them directly.
-pub(crate) fn runs_on_host_cpu(device: &Device) -> bool {
-    if device.is_autodiff() || !FUSED_CPU_KERNELS.load(Ordering::Relaxed) {
+/// Whether tensors on `device` live in host memory without autodiff, so that the host CPU
+/// inference kernels ([`super::InferenceNetwork::host`]) may read and write them directly.
+pub fn is_host_cpu(device: &Device) -> bool {
+    if device.is_autodiff() {
         return false;
     }
     #[cfg(feature = "flex")]

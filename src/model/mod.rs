@@ -4,16 +4,20 @@
 
 mod backbone;
 mod cost;
-mod cpu_decoder;
 mod device;
 mod fused;
 pub use fused::gelu_grn;
+mod host_decoder;
+mod inference;
+pub use inference::InferenceNetwork;
 mod tdcm;
 mod weights;
 
-pub use backbone::{Backbone, BackboneConfig, BackboneTrace, ConvNextBlock, GlobalResponseNorm};
+pub use backbone::{
+    Backbone, BackboneConfig, BackboneTrace, ConvNextBlock, GeluGrn, GlobalResponseNorm,
+};
 pub use cost::multiply_adds;
-pub use device::{DeviceError, available_backends, select_device, set_fused_cpu_kernels};
+pub use device::{DeviceError, available_backends, is_host_cpu, select_device};
 pub use tdcm::{
     Decoder, HEAD_SCALE_MAX, HEAD_SCALE_MIN, Head, Heads, MatchMaps, SearchMatcher, SearchTrace,
     TEMPLATE_GRID, Tdcm, TdcmConfig, TemplateEncoder, depthwise_correlation,

@@ -10,7 +10,7 @@ use burn::tensor::activation::{relu, sigmoid, tanh};
 use burn::tensor::module::conv2d;
 use burn::tensor::ops::ConvOptions;
 
-use super::backbone::{BATCH_NORM_EPS, Backbone, BackboneConfig, BackboneTrace};
+use super::backbone::{BATCH_NORM_EPS, Backbone, BackboneConfig, BackboneTrace, GeluGrn};
 
 /// Side of the square grid the network sees a template at (the official checkpoint: 36).
 /// It must be `8n + 4` so that the template features have an odd side (`2n + 1`) and the
@@ -63,16 +63,22 @@ impl TemplateEncoder {
     /// - `templates`: `[batch, 3, G, G]` with `G` = [`TEMPLATE_GRID`]
     /// - output: `[batch, 96, G/4, G/4]`, one depthwise kernel per channel
     pub fn forward(&self, templates: Tensor<4>) -> Tensor<4> {
+        self.forward_traced(templates, GeluGrn::Modules).0
+    }
+
+    /// Like [`TemplateEncoder::forward`], with the GELU+GRN path chosen, plus the backbone's
+    /// intermediates.
+    pub fn forward_traced(
+        &self,
+        templates: Tensor<4>,
+        gelu_grn: GeluGrn,
+    ) -> (Tensor<4>, BackboneTrace) {
         let [_, _, h, w] = templates.dims();
         assert!(
             h % 8 == 4 && w % 8 == 4,
             "template grid {h}x{w} is not 8n+4; this is a bug in the caller"
         );
-        self.backbone.forward(templates)
-    }
-
-    pub fn forward_traced(&self, templates: Tensor<4>) -> (Tensor<4>, BackboneTrace) {
-        self.backbone.forward_traced(templates)
+        self.backbone.forward_traced(templates, gelu_grn)
     }
 }
 
@@ -152,27 +158,9 @@ impl SearchMatcher {
     /// - `images`: `[batch, 3, H, W]`, normalised, `H, W >= 4`
     /// - `kernels`: `[batch, 96, k, k]`, `k` odd, from [`TemplateEncoder::forward`]
     ///
-    /// On the host CPU the samples of a batch run one after another. Every layer is already
-    /// compute-bound at batch 1 (its gemms have tens of thousands of rows), so a batch buys no
-    /// weight reuse; what it costs is cache: at batch 4 the backbone's activations after fc1
-    /// (~19 MB at 224x224) spill out of L2/L3 and the memory-bound stages (GELU+GRN,
-    /// LayerNorm, residuals) slow by 20-40 % (measured with `examples/profile.rs`), which made a
-    /// batch of 4 cost 12 % more per pair than four single passes.
+    /// burn's modules throughout: differentiable and for any device. Inference on the host CPU
+    /// goes through [`super::InferenceNetwork`] instead.
     pub fn forward(&self, images: Tensor<4>, kernels: Tensor<4>) -> MatchMaps {
-        let batch = images.dims()[0];
-        if super::device::runs_on_host_cpu(&images.device()) {
-            let per_sample = (0..batch)
-                .map(|i| {
-                    let features = self.backbone.forward(images.clone().narrow(0, i, 1));
-                    let correlation =
-                        depthwise_correlation(features, kernels.clone().narrow(0, i, 1));
-                    super::cpu_decoder::decode(self, correlation, false).0
-                })
-                .collect();
-            return MatchMaps {
-                stacked: Tensor::cat(per_sample, 0),
-            };
-        }
         let features = self.backbone.forward(images);
         let correlation = depthwise_correlation(features, kernels);
         self.decode(correlation).0
@@ -183,7 +171,7 @@ impl SearchMatcher {
         images: Tensor<4>,
         kernels: Tensor<4>,
     ) -> (MatchMaps, SearchTrace) {
-        let (features, backbone) = self.backbone.forward_traced(images);
+        let (features, backbone) = self.backbone.forward_traced(images, GeluGrn::Modules);
         let correlation = depthwise_correlation(features.clone(), kernels);
         let (maps, (fusion, bn1, bn2)) = self.decode(correlation.clone());
         let trace = SearchTrace {
@@ -198,11 +186,6 @@ impl SearchMatcher {
     }
 
     fn decode(&self, correlation: Tensor<4>) -> (MatchMaps, (Tensor<4>, Tensor<4>, Tensor<4>)) {
-        if super::device::runs_on_host_cpu(&correlation.device()) {
-            let (stacked, trace) = super::cpu_decoder::decode(self, correlation, true);
-            let trace = trace.expect("trace requested");
-            return (MatchMaps { stacked }, (trace.fusion, trace.bn1, trace.bn2));
-        }
         let fusion = self.fusion.forward(correlation); // [b, 96, h, w]
         let (x, bn1, bn2) = self.decoder.forward(fusion.clone()); // [b, 24, 4h, 4w]
         let maps = MatchMaps {

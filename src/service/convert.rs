@@ -11,7 +11,7 @@ use crate::engine::store::TemplateMeta;
 use crate::engine::{EngineError, Roi};
 use crate::geometry::Pose;
 use crate::imaging::{DecodeError, ImageLimits, RgbImage32, decode_image};
-use crate::matcher::{AngleRange, MatchOptions, ScaleRange};
+use crate::matcher::{AngleRange, MatchOptions, ScaleRange, ValidOptions};
 
 /// The one mapping from engine errors to gRPC status codes. Failures of ours (store, internal)
 /// are logged in full and answered without server paths or details.
@@ -119,7 +119,7 @@ fn raw_to_rgb(
 pub fn options_from_proto(
     options: Option<proto::MatchOptions>,
     defaults: &MatchOptions,
-) -> Result<(MatchOptions, Option<Roi>), EngineError> {
+) -> Result<(ValidOptions, Option<Roi>), EngineError> {
     let o = options.unwrap_or_default();
     let invalid = |m: String| Err(EngineError::InvalidArgument(m));
     let finite = [
@@ -191,7 +191,7 @@ pub fn options_from_proto(
         scale_range,
         refine: !o.no_refine,
     };
-    options
+    let options = options
         .validate()
         .map_err(|m| EngineError::InvalidArgument(format!("options.{m}")))?;
     let roi = o.roi.and_then(|r| {
@@ -338,7 +338,7 @@ mod tests {
     #[test]
     fn zero_options_are_defaults_and_absurd_ones_are_refused() {
         let (o, roi) = options_from_proto(None, &MatchOptions::default()).unwrap();
-        assert_eq!(o, MatchOptions::default());
+        assert_eq!(o, ValidOptions::default());
         assert!(roi.is_none());
         let bad = |o: proto::MatchOptions| {
             options_from_proto(Some(o), &MatchOptions::default())

@@ -1,7 +1,8 @@
 //! The decoder and heads for inference on the host CPU, channels-last from start to finish.
 //!
 //! Same function as [`super::Decoder`] + [`super::Heads`] (the parity fixtures check this path),
-//! computed differently: BatchNorm folded into the preceding convolution, every 3x3 convolution
+//! computed differently: BatchNorm folded into the preceding convolution once, when the
+//! [`HostDecoder`] is built from loaded weights, every 3x3 convolution
 //! as a row-chunked im2col (each chunk fits in L2) times one matrix through the `gemm` crate, chunks
 //! in parallel, pixel shuffles as plain gathers, and the five heads' 1x1 convolutions and output
 //! functions applied to each chunk while it is still in cache. burn's generic convolution converts
@@ -286,7 +287,7 @@ fn sigmoid(x: f32) -> f32 {
 }
 
 /// Pre-activation intermediates, for the parity fixtures.
-pub struct CpuTrace {
+pub struct HostTrace {
     pub fusion: Tensor<4>,
     pub bn1: Tensor<4>,
     pub bn2: Tensor<4>,
@@ -298,51 +299,61 @@ fn nchw_tensor(nhwc: &[Vec<f32>], h: usize, w: usize, c: usize, device: &Device)
         .permute([0, 3, 1, 2])
 }
 
-/// Decoder + heads on the host CPU.
-///
-/// # Shapes
-/// - `correlation`: `[batch, 96, h, w]`
-/// - output: `[batch, 5, 4h, 4w]` maps, and the intermediates when `trace`
-pub fn decode(
-    matcher: &SearchMatcher,
-    correlation: Tensor<4>,
-    trace: bool,
-) -> (Tensor<4>, Option<CpuTrace>) {
-    let device = correlation.device();
-    let [b, c, h, w] = correlation.dims();
-    let fusion = Conv3x3::new(&matcher.fusion, None);
-    let conv1 = Conv3x3::new(&matcher.decoder.conv1, Some(&matcher.decoder.bn1));
-    let conv2 = Conv3x3::new(&matcher.decoder.conv2, Some(&matcher.decoder.bn2));
-    let heads = HeadsCpu::new(&matcher.heads);
-    let input: Vec<f32> = correlation
-        .permute([0, 2, 3, 1])
-        .into_data()
-        .try_into_vec()
-        .expect("activations are f32; this is a bug");
-    let mut maps = Vec::with_capacity(b * 5 * 16 * h * w);
-    let (mut fusions, mut bn1s, mut bn2s) = (Vec::new(), Vec::new(), Vec::new());
-    for sample in input.chunks_exact(h * w * c) {
-        let fused = fusion.forward(sample, h, w); // [h, w, 96]
-        let mut x = conv1.forward(&fused, h, w); // [h, w, 192]
-        if trace {
-            fusions.push(fused);
-            bn1s.push(x.clone());
+/// Decoder + heads on the host CPU, with BatchNorm folded and every weight laid out for the
+/// gemms once, at construction.
+pub struct HostDecoder {
+    fusion: Conv3x3,
+    conv1: Conv3x3,
+    conv2: Conv3x3,
+    heads: HeadsCpu,
+}
+
+impl HostDecoder {
+    pub fn new(matcher: &SearchMatcher) -> Self {
+        Self {
+            fusion: Conv3x3::new(&matcher.fusion, None),
+            conv1: Conv3x3::new(&matcher.decoder.conv1, Some(&matcher.decoder.bn1)),
+            conv2: Conv3x3::new(&matcher.decoder.conv2, Some(&matcher.decoder.bn2)),
+            heads: HeadsCpu::new(&matcher.heads),
         }
-        relu_in_place(&mut x);
-        let x = pixel_shuffle(&x, w, conv1.cout); // [2h, 2w, 48]
-        let mut x = conv2.forward(&x, 2 * h, 2 * w); // [2h, 2w, 96]
-        if trace {
-            bn2s.push(x.clone());
-        }
-        relu_in_place(&mut x);
-        let x = pixel_shuffle(&x, 2 * w, conv2.cout); // [4h, 4w, 24]
-        maps.extend(heads.forward(&x, 4 * h, 4 * w)); // [5, 4h, 4w]
     }
-    let maps = Tensor::from_data(TensorData::new(maps, [b, 5, 4 * h, 4 * w]), &device);
-    let trace = trace.then(|| CpuTrace {
-        fusion: nchw_tensor(&fusions, h, w, fusion.cout, &device),
-        bn1: nchw_tensor(&bn1s, h, w, conv1.cout, &device),
-        bn2: nchw_tensor(&bn2s, 2 * h, 2 * w, conv2.cout, &device),
-    });
-    (maps, trace)
+
+    /// # Shapes
+    /// - `correlation`: `[batch, 96, h, w]`
+    /// - output: `[batch, 5, 4h, 4w]` maps, and the intermediates when `trace`
+    pub fn forward(&self, correlation: Tensor<4>, trace: bool) -> (Tensor<4>, Option<HostTrace>) {
+        let device = correlation.device();
+        let [b, c, h, w] = correlation.dims();
+        let input: Vec<f32> = correlation
+            .permute([0, 2, 3, 1])
+            .into_data()
+            .try_into_vec()
+            .expect("activations are f32; this is a bug");
+        let mut maps = Vec::with_capacity(b * 5 * 16 * h * w);
+        let (mut fusions, mut bn1s, mut bn2s) = (Vec::new(), Vec::new(), Vec::new());
+        for sample in input.chunks_exact(h * w * c) {
+            let fused = self.fusion.forward(sample, h, w); // [h, w, 96]
+            let mut x = self.conv1.forward(&fused, h, w); // [h, w, 192]
+            if trace {
+                fusions.push(fused);
+                bn1s.push(x.clone());
+            }
+            relu_in_place(&mut x);
+            let x = pixel_shuffle(&x, w, self.conv1.cout); // [2h, 2w, 48]
+            let mut x = self.conv2.forward(&x, 2 * h, 2 * w); // [2h, 2w, 96]
+            if trace {
+                bn2s.push(x.clone());
+            }
+            relu_in_place(&mut x);
+            let x = pixel_shuffle(&x, 2 * w, self.conv2.cout); // [4h, 4w, 24]
+            maps.extend(self.heads.forward(&x, 4 * h, 4 * w)); // [5, 4h, 4w]
+        }
+        let maps = Tensor::from_data(TensorData::new(maps, [b, 5, 4 * h, 4 * w]), &device);
+        let trace = trace.then(|| HostTrace {
+            fusion: nchw_tensor(&fusions, h, w, self.fusion.cout, &device),
+            bn1: nchw_tensor(&bn1s, h, w, self.conv1.cout, &device),
+            bn2: nchw_tensor(&bn2s, 2 * h, 2 * w, self.conv2.cout, &device),
+        });
+        (maps, trace)
+    }
 }
