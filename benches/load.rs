@@ -15,12 +15,12 @@ static ALLOCATOR: mimalloc::MiMalloc = mimalloc::MiMalloc;
 use std::path::PathBuf;
 use std::time::{Duration, Instant};
 
+use posematch::grpc::proto::pose_matcher_client::PoseMatcherClient;
+use posematch::grpc::proto::{self, image::Data};
+use posematch::grpc::{ModelLoader, Overrides, RunningServer, Settings};
 use posematch::imaging::InputConvention;
 use posematch::matcher::Matcher;
 use posematch::model::{TdcmConfig, load_weights, select_device};
-use posematch::service::proto::pose_matcher_client::PoseMatcherClient;
-use posematch::service::proto::{self, image::Data};
-use posematch::service::{ModelLoader, Overrides, RunningServer, Settings};
 
 fn env_list(name: &str, default: &str) -> Vec<usize> {
     std::env::var(name)

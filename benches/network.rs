@@ -19,7 +19,7 @@ use burn::prelude::*;
 use criterion::{BenchmarkId, Criterion, Throughput, criterion_group, criterion_main};
 use posematch::imaging::GrayImage32;
 use posematch::imaging::{InputConvention, RgbImage32};
-use posematch::matcher::decode::{MapPlanes, decode_peak, find_peaks};
+use posematch::matcher::peaks::{MapPlanes, find_peaks, peak_at};
 use posematch::matcher::{MatchOptions, Matcher};
 use posematch::model::{Tdcm, TdcmConfig, load_weights, multiply_adds, select_device};
 use posematch::refine::refine_pose;
@@ -140,7 +140,7 @@ fn benches(c: &mut Criterion) {
         b.iter(|| {
             find_peaks(&planes, 0.05, 56)
                 .into_iter()
-                .map(|(r, c)| decode_peak(&planes, r, c))
+                .map(|(r, c)| peak_at(&planes, r, c))
                 .collect::<Vec<_>>()
         })
     });

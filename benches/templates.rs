@@ -13,12 +13,12 @@ static ALLOCATOR: mimalloc::MiMalloc = mimalloc::MiMalloc;
 
 use std::time::{Duration, Instant};
 
+use posematch::grpc::proto::pose_matcher_client::PoseMatcherClient;
+use posematch::grpc::proto::{self, image::Data};
+use posematch::grpc::{ModelLoader, Overrides, RunningServer, Settings};
 use posematch::imaging::InputConvention;
 use posematch::matcher::Matcher;
 use posematch::model::{TdcmConfig, select_device};
-use posematch::service::proto::pose_matcher_client::PoseMatcherClient;
-use posematch::service::proto::{self, image::Data};
-use posematch::service::{ModelLoader, Overrides, RunningServer, Settings};
 use tonic::transport::Channel;
 
 fn env_number(name: &str, default: u64) -> u64 {

@@ -129,11 +129,11 @@ fn benches(c: &mut Criterion) {
         let network: Vec<Option<Pose>> = pairs.iter().map(|p| network_top1(&matcher, p)).collect();
         let refined: Vec<Option<Pose>> = pairs.iter().map(|p| refined_top1(&matcher, p)).collect();
         println!(
-            "{name} weights, {} pairs: verified {total_ms:.1} ms/pair = prepare {:.1} + network {:.1} + decode {:.1} + screen {:.1} + confirm {:.1} (+ template encode); Succ network {} / refined {} / verified {}",
+            "{name} weights, {} pairs: verified {total_ms:.1} ms/pair = prepare {:.1} + network {:.1} + peaks {:.1} + screen {:.1} + confirm {:.1} (+ template encode); Succ network {} / refined {} / verified {}",
             pairs.len(),
             mean(|t| t.prepare_ms),
             mean(|t| t.network_ms),
-            mean(|t| t.decode_ms),
+            mean(|t| t.peaks_ms),
             mean(|t| t.screen_ms),
             mean(|t| t.refine_ms),
             successes(&pairs, &network),

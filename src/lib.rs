@@ -4,7 +4,7 @@
 //! Layers, lowest first: [`model`] (burn network, weights), [`imaging`] (decode, normalise,
 //! resize), [`geometry`] (pose convention, rotated boxes), [`refine`] (refinement and
 //! verification on the image), [`matcher`] (images in, poses out), [`engine`] (template
-//! registry, batching model thread), [`service`] (gRPC) and [`cli`] on top. Beside them:
+//! registry, batching model thread), [`grpc`] (transport) and [`cli`] on top. Beside them:
 //! [`synth`] (pairs with known truth), [`evaluation`] (the paper's metrics) and [`train`]
 //! (training on the CPU).
 
@@ -12,10 +12,10 @@ pub mod cli;
 pub mod engine;
 pub mod evaluation;
 pub mod geometry;
+pub mod grpc;
 pub mod imaging;
 pub mod matcher;
 pub mod model;
 pub mod refine;
-pub mod service;
 pub mod synth;
 pub mod train;

@@ -12,12 +12,12 @@ use std::collections::HashMap;
 use std::path::Path;
 use std::time::Duration;
 
+use posematch::grpc::proto::pose_matcher_client::PoseMatcherClient;
+use posematch::grpc::proto::{self, image::Data, raw_image::Format};
+use posematch::grpc::{ModelLoader, Overrides, RunningServer, Settings};
 use posematch::imaging::InputConvention;
 use posematch::matcher::Matcher;
 use posematch::model::{TdcmConfig, load_weights, select_device};
-use posematch::service::proto::pose_matcher_client::PoseMatcherClient;
-use posematch::service::proto::{self, image::Data, raw_image::Format};
-use posematch::service::{ModelLoader, Overrides, RunningServer, Settings};
 use tonic::Code;
 use tonic::transport::Channel;
 

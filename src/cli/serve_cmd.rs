@@ -7,9 +7,9 @@ use std::time::Duration;
 use clap::Args;
 
 use super::CliError;
+use crate::grpc::{LogFormat, ModelLoader, Overrides, RunningServer, Settings};
 use crate::matcher::Matcher;
 use crate::model::{WeightsSource, select_device};
-use crate::service::{LogFormat, ModelLoader, Overrides, RunningServer, Settings};
 
 #[derive(Args, Debug)]
 pub struct ServeArgs {

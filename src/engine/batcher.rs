@@ -1,4 +1,5 @@
-//! Dynamic batching: one model thread owns the [`Matcher`] and serves a queue.
+//! Dynamic batching: one model thread owns the model (the [`Matcher`]; anything that is a
+//! [`BatchModel`]) and serves a queue.
 //!
 //! Why a dedicated OS thread and not tokio tasks: a forward pass keeps both cores busy for tens
 //! of milliseconds (rayon inside burn and our CPU kernels); on the async runtime it would stall
@@ -17,6 +18,23 @@ use tokio::sync::{mpsc, oneshot};
 use super::metrics::Metrics;
 use crate::imaging::RgbImage32;
 use crate::matcher::{EncodedTemplate, MatchError, MatchJob, MatchOutcome, Matcher, ValidOptions};
+
+/// What the model thread needs of its model: the [`Matcher`] in production, a fake in the unit
+/// tests (which gate it to see exactly how work is batched).
+pub trait BatchModel: Send + 'static {
+    fn encode_template(&self, image: &RgbImage32) -> Result<EncodedTemplate, MatchError>;
+    fn match_many(&self, jobs: &[MatchJob]) -> Vec<Result<MatchOutcome, MatchError>>;
+}
+
+impl BatchModel for Matcher {
+    fn encode_template(&self, image: &RgbImage32) -> Result<EncodedTemplate, MatchError> {
+        Matcher::encode_template(self, image)
+    }
+
+    fn match_many(&self, jobs: &[MatchJob]) -> Vec<Result<MatchOutcome, MatchError>> {
+        Matcher::match_many(self, jobs)
+    }
+}
 
 /// One search waiting for the model.
 pub struct MatchWork {
@@ -76,7 +94,7 @@ pub struct Batcher {
 impl Batcher {
     /// Starts the model thread.
     pub fn spawn(
-        matcher: Matcher,
+        model: impl BatchModel,
         max_batch_size: usize,
         queue_size: usize,
         metrics: Metrics,
@@ -89,7 +107,7 @@ impl Batcher {
             .name("posematch-model".into())
             .spawn(move || {
                 model_loop(
-                    matcher,
+                    model,
                     max_batch_size.max(1),
                     receiver,
                     thread_waiting,
@@ -155,7 +173,7 @@ pub enum EncodeError {
 }
 
 fn model_loop(
-    matcher: Matcher,
+    model: impl BatchModel,
     max_batch_size: usize,
     mut receiver: mpsc::UnboundedReceiver<Work>,
     waiting: Arc<AtomicUsize>,
@@ -169,7 +187,7 @@ fn model_loop(
         while let Some(work) = next.take() {
             match work {
                 Work::Encode(image, reply) => {
-                    let _ = reply.send(matcher.encode_template(&image));
+                    let _ = reply.send(model.encode_template(&image));
                 }
                 Work::Match(work, queued_at) => {
                     waiting.fetch_sub(1, Ordering::SeqCst);
@@ -203,11 +221,11 @@ fn model_loop(
         if live.is_empty() {
             continue;
         }
-        run_batch(&matcher, live, &metrics);
+        run_batch(&model, live, &metrics);
     }
 }
 
-fn run_batch(matcher: &Matcher, live: Vec<(MatchWork, Instant)>, metrics: &Metrics) {
+fn run_batch(model: &impl BatchModel, live: Vec<(MatchWork, Instant)>, metrics: &Metrics) {
     let start = Instant::now();
     let jobs: Vec<MatchJob> = live
         .iter()
@@ -217,7 +235,7 @@ fn run_batch(matcher: &Matcher, live: Vec<(MatchWork, Instant)>, metrics: &Metri
             options: &work.options,
         })
         .collect();
-    let results = matcher.match_many(&jobs);
+    let results = model.match_many(&jobs);
     drop(jobs);
     let batch_size = live.len();
     metrics.batch_size.observe(batch_size as f64);
@@ -237,5 +255,239 @@ fn run_batch(matcher: &Matcher, live: Vec<(MatchWork, Instant)>, metrics: &Metri
             })
             .map_err(BatchError::from);
         let _ = work.reply.send(answer);
+    }
+}
+
+#[cfg(test)]
+mod tests {
+    //! The model runs on its own OS thread, so these tests hold it with a gate instead of a
+    //! clock: the fake model announces each batch and waits for the test to release it, and
+    //! the test queues work while it is held. No sleeps, no timing assumptions.
+
+    use std::sync::Mutex;
+    use std::sync::mpsc::{Receiver, Sender, channel};
+    use std::time::Duration;
+
+    use burn::prelude::*;
+
+    use super::*;
+    use crate::geometry::Pose;
+    use crate::imaging::GrayImage32;
+
+    /// Answers each job with one pose whose `x` is the job's image width, so a test can tell
+    /// which answer went where.
+    struct GatedModel {
+        started: Sender<usize>,
+        release: Mutex<Receiver<()>>,
+    }
+
+    impl BatchModel for GatedModel {
+        fn encode_template(&self, image: &RgbImage32) -> Result<EncodedTemplate, MatchError> {
+            Ok(template(image.width))
+        }
+
+        fn match_many(&self, jobs: &[MatchJob]) -> Vec<Result<MatchOutcome, MatchError>> {
+            self.started.send(jobs.len()).unwrap();
+            self.release.lock().unwrap().recv().unwrap();
+            jobs.iter()
+                .map(|job| {
+                    Ok(MatchOutcome {
+                        poses: vec![Pose {
+                            x: job.image.width as f32,
+                            y: 0.0,
+                            angle_deg: 0.0,
+                            scale_x: 1.0,
+                            scale_y: 1.0,
+                            score: 1.0,
+                            network_score: 1.0,
+                        }],
+                        timings: Default::default(),
+                    })
+                })
+                .collect()
+        }
+    }
+
+    fn template(width: u32) -> EncodedTemplate {
+        EncodedTemplate {
+            width,
+            height: 8,
+            kernel: Tensor::zeros([1, 96, 9, 9], &Device::flex()),
+            gray: Arc::new(GrayImage32::from_rgb(&image(8))),
+        }
+    }
+
+    fn image(width: u32) -> RgbImage32 {
+        RgbImage32::new(width, 8, vec![0.5; width as usize * 8 * 3])
+    }
+
+    struct Harness {
+        batcher: Batcher,
+        metrics: Metrics,
+        /// Sizes of batches as the model starts them.
+        started: Receiver<usize>,
+        release: Sender<()>,
+        template: Arc<EncodedTemplate>,
+    }
+
+    type Answer = oneshot::Receiver<Result<BatchAnswer, BatchError>>;
+
+    impl Harness {
+        fn new(max_batch_size: usize, queue_size: usize) -> Self {
+            let (started_tx, started) = channel();
+            let (release, release_rx) = channel();
+            let metrics = Metrics::new();
+            let model = GatedModel {
+                started: started_tx,
+                release: Mutex::new(release_rx),
+            };
+            let batcher = Batcher::spawn(model, max_batch_size, queue_size, metrics.clone());
+            Self {
+                batcher,
+                metrics,
+                started,
+                release,
+                template: Arc::new(template(8)),
+            }
+        }
+
+        fn submit(&self, width: u32, deadline: Option<Instant>) -> Result<Answer, SubmitError> {
+            let (reply, answer) = oneshot::channel();
+            self.batcher
+                .submit(MatchWork {
+                    template: self.template.clone(),
+                    image: image(width),
+                    options: ValidOptions::default(),
+                    deadline,
+                    reply,
+                })
+                .map(|()| answer)
+        }
+
+        /// Waits until the model starts a batch; its size.
+        fn next_batch(&self) -> usize {
+            self.started
+                .recv_timeout(Duration::from_secs(30))
+                .expect("the model thread started a batch")
+        }
+
+        fn release_batch(&self) {
+            self.release.send(()).unwrap();
+        }
+
+        fn dropped(&self, reason: &str) -> u64 {
+            self.metrics.dropped.with_label_values(&[reason]).get()
+        }
+    }
+
+    fn answer(answer: Answer) -> BatchAnswer {
+        answer
+            .blocking_recv()
+            .expect("the model thread answered")
+            .expect("a successful answer")
+    }
+
+    #[test]
+    fn waiting_work_is_batched_up_to_the_limit_and_each_answer_reaches_its_caller() {
+        let h = Harness::new(3, 10);
+        let first = h.submit(100, None).unwrap();
+        assert_eq!(
+            h.next_batch(),
+            1,
+            "a lone request does not wait for company"
+        );
+        let queued: Vec<Answer> = (101..105).map(|w| h.submit(w, None).unwrap()).collect();
+        h.release_batch();
+        assert_eq!(
+            h.next_batch(),
+            3,
+            "what waits is taken, up to max_batch_size"
+        );
+        h.release_batch();
+        assert_eq!(h.next_batch(), 1);
+        h.release_batch();
+        let first = answer(first);
+        assert_eq!((first.batch_size, first.outcome.poses[0].x), (1, 100.0));
+        let sizes_and_widths: Vec<(usize, f32)> = queued
+            .into_iter()
+            .map(|a| {
+                let a = answer(a);
+                (a.batch_size, a.outcome.poses[0].x)
+            })
+            .collect();
+        assert_eq!(
+            sizes_and_widths,
+            vec![(3, 101.0), (3, 102.0), (3, 103.0), (1, 104.0)]
+        );
+    }
+
+    #[test]
+    fn a_full_queue_refuses_at_once_and_counts_it() {
+        let h = Harness::new(1, 2);
+        let running = h.submit(100, None).unwrap();
+        assert_eq!(h.next_batch(), 1);
+        // The running request has left the queue; two more fit, the third does not.
+        let waiting = [h.submit(101, None).unwrap(), h.submit(102, None).unwrap()];
+        match h.submit(103, None) {
+            Err(SubmitError::Full(QueueFull(2))) => {}
+            other => panic!("expected a full queue, got {:?}", other.map(|_| ())),
+        }
+        assert_eq!(h.dropped("queue_full"), 1);
+        assert_eq!(h.metrics.queue_depth.get(), 2);
+        for _ in 0..3 {
+            h.release_batch();
+        }
+        assert_eq!((h.next_batch(), h.next_batch()), (1, 1));
+        answer(running);
+        for a in waiting {
+            answer(a);
+        }
+    }
+
+    #[test]
+    fn expired_and_abandoned_work_never_reaches_the_model_and_is_counted_by_reason() {
+        let h = Harness::new(8, 10);
+        let running = h.submit(100, None).unwrap();
+        assert_eq!(h.next_batch(), 1);
+        let expired = h.submit(101, Some(Instant::now())).unwrap();
+        let abandoned = h.submit(102, None).unwrap();
+        drop(abandoned);
+        let live = h.submit(103, None).unwrap();
+        h.release_batch();
+        assert_eq!(h.next_batch(), 1, "only the live request is run");
+        h.release_batch();
+        answer(running);
+        assert_eq!(answer(live).outcome.poses[0].x, 103.0);
+        assert!(matches!(
+            expired.blocking_recv().unwrap(),
+            Err(BatchError::DeadlineExceeded)
+        ));
+        assert_eq!((h.dropped("deadline"), h.dropped("client_gone")), (1, 1));
+    }
+
+    #[test]
+    fn template_encodings_are_not_refused_by_a_full_match_queue() {
+        let h = Harness::new(1, 1);
+        let running = h.submit(100, None).unwrap();
+        assert_eq!(h.next_batch(), 1);
+        let waiting = h.submit(101, None).unwrap();
+        assert!(matches!(h.submit(102, None), Err(SubmitError::Full(_))));
+        let batcher = h.batcher.clone();
+        let encoding = std::thread::spawn(move || {
+            tokio::runtime::Builder::new_current_thread()
+                .build()
+                .unwrap()
+                .block_on(batcher.encode(image(77)))
+        });
+        h.release_batch();
+        h.release_batch();
+        assert_eq!(h.next_batch(), 1);
+        let encoded = encoding
+            .join()
+            .unwrap()
+            .expect("encoded while the queue was full");
+        assert_eq!(encoded.width, 77);
+        answer(running);
+        answer(waiting);
     }
 }

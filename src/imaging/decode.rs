@@ -7,6 +7,8 @@ use std::path::Path;
 
 use image::{ImageReader, Limits};
 
+use super::RgbImage32;
+
 /// Bounds on what we agree to decode.
 #[derive(Debug, Clone, Copy)]
 pub struct ImageLimits {
@@ -57,51 +59,6 @@ pub enum DecodeError {
     },
     #[error("{what}: the image is corrupt or truncated: {message}")]
     Corrupt { what: String, message: String },
-}
-
-/// An RGB image as interleaved `f32` values in [0, 1].
-#[derive(Debug, Clone)]
-pub struct RgbImage32 {
-    pub width: u32,
-    pub height: u32,
-    /// `height * width * 3`, row-major, RGB interleaved.
-    pub pixels: Vec<f32>,
-}
-
-impl RgbImage32 {
-    pub fn new(width: u32, height: u32, pixels: Vec<f32>) -> Self {
-        assert_eq!(pixels.len(), width as usize * height as usize * 3);
-        Self {
-            width,
-            height,
-            pixels,
-        }
-    }
-
-    /// From an already decoded `image` buffer (any colour type).
-    pub fn from_dynamic(image: &image::DynamicImage) -> Self {
-        let rgb = image.to_rgb32f();
-        Self::new(rgb.width(), rgb.height(), rgb.into_raw())
-    }
-
-    /// Luma (BT.601) of every pixel, in [0, 1].
-    pub fn to_gray(&self) -> Vec<f32> {
-        self.pixels
-            .chunks_exact(3)
-            .map(|p| 0.299 * p[0] + 0.587 * p[1] + 0.114 * p[2])
-            .collect()
-    }
-
-    /// A copy of the `w x h` window at `(x0, y0)`; the window must lie inside.
-    pub fn crop(&self, x0: u32, y0: u32, w: u32, h: u32) -> Self {
-        assert!(x0 + w <= self.width && y0 + h <= self.height);
-        let mut pixels = Vec::with_capacity(w as usize * h as usize * 3);
-        for y in y0..y0 + h {
-            let start = (y as usize * self.width as usize + x0 as usize) * 3;
-            pixels.extend_from_slice(&self.pixels[start..start + w as usize * 3]);
-        }
-        Self::new(w, h, pixels)
-    }
 }
 
 /// Reads and decodes an image file. `what` names it in errors ("template", "image", a path).

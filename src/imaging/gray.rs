@@ -49,17 +49,47 @@ impl GrayImage32 {
     /// Bilinear sample with the coordinates clamped to the image.
     #[inline]
     pub fn sample(&self, x: f32, y: f32) -> f32 {
-        let x = x.clamp(0.0, (self.width - 1) as f32);
-        let y = y.clamp(0.0, (self.height - 1) as f32);
+        BilinearTap::new(self.width, self.height, x, y).apply(&self.values)
+    }
+}
+
+/// Where a bilinear sample of a `width x height` plane reads (coordinates clamped to the plane)
+/// and with what weights. One tap serves several planes of the same size (an image and its
+/// gradients) at the cost of one.
+#[derive(Debug, Clone, Copy)]
+pub struct BilinearTap {
+    /// Indices of the four neighbours: top-left, top-right, bottom-left, bottom-right.
+    corners: [usize; 4],
+    fx: f32,
+    fy: f32,
+}
+
+impl BilinearTap {
+    #[inline]
+    pub fn new(width: usize, height: usize, x: f32, y: f32) -> Self {
+        let x = x.clamp(0.0, (width - 1) as f32);
+        let y = y.clamp(0.0, (height - 1) as f32);
         let (x0, y0) = (x as usize, y as usize);
-        let x1 = (x0 + 1).min(self.width - 1);
-        let y1 = (y0 + 1).min(self.height - 1);
-        let (fx, fy) = (x - x0 as f32, y - y0 as f32);
-        let row0 = &self.values[y0 * self.width..];
-        let row1 = &self.values[y1 * self.width..];
-        let top = row0[x0] + (row0[x1] - row0[x0]) * fx;
-        let bottom = row1[x0] + (row1[x1] - row1[x0]) * fx;
-        top + (bottom - top) * fy
+        let (x1, y1) = ((x0 + 1).min(width - 1), (y0 + 1).min(height - 1));
+        Self {
+            corners: [
+                y0 * width + x0,
+                y0 * width + x1,
+                y1 * width + x0,
+                y1 * width + x1,
+            ],
+            fx: x - x0 as f32,
+            fy: y - y0 as f32,
+        }
+    }
+
+    /// The sample of `plane` (row-major, the size the tap was made for).
+    #[inline]
+    pub fn apply(&self, plane: &[f32]) -> f32 {
+        let [a, b, c, d] = self.corners;
+        let top = plane[a] + (plane[b] - plane[a]) * self.fx;
+        let bottom = plane[c] + (plane[d] - plane[c]) * self.fx;
+        top + (bottom - top) * self.fy
     }
 }
 

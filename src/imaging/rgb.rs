@@ -1,9 +1,52 @@
-//! Operations on colour images that more than one stage needs: bilinear sampling (8-bit photos
-//! and float images), border padding and a small blur.
+//! The float colour image and the operations on colour images that more than one stage needs:
+//! bilinear sampling (8-bit photos and float images), border padding and a small blur.
 
 use image::RgbImage;
 
-use super::RgbImage32;
+/// An RGB image as interleaved `f32` values in [0, 1].
+#[derive(Debug, Clone)]
+pub struct RgbImage32 {
+    pub width: u32,
+    pub height: u32,
+    /// `height * width * 3`, row-major, RGB interleaved.
+    pub pixels: Vec<f32>,
+}
+
+impl RgbImage32 {
+    pub fn new(width: u32, height: u32, pixels: Vec<f32>) -> Self {
+        assert_eq!(pixels.len(), width as usize * height as usize * 3);
+        Self {
+            width,
+            height,
+            pixels,
+        }
+    }
+
+    /// From an already decoded `image` buffer (any colour type).
+    pub fn from_dynamic(image: &image::DynamicImage) -> Self {
+        let rgb = image.to_rgb32f();
+        Self::new(rgb.width(), rgb.height(), rgb.into_raw())
+    }
+
+    /// Luma (BT.601) of every pixel, in [0, 1].
+    pub fn to_gray(&self) -> Vec<f32> {
+        self.pixels
+            .chunks_exact(3)
+            .map(|p| 0.299 * p[0] + 0.587 * p[1] + 0.114 * p[2])
+            .collect()
+    }
+
+    /// A copy of the `w x h` window at `(x0, y0)`; the window must lie inside.
+    pub fn crop(&self, x0: u32, y0: u32, w: u32, h: u32) -> Self {
+        assert!(x0 + w <= self.width && y0 + h <= self.height);
+        let mut pixels = Vec::with_capacity(w as usize * h as usize * 3);
+        for y in y0..y0 + h {
+            let start = (y as usize * self.width as usize + x0 as usize) * 3;
+            pixels.extend_from_slice(&self.pixels[start..start + w as usize * 3]);
+        }
+        Self::new(w, h, pixels)
+    }
+}
 
 /// Replicates the last row/column until both sides are at least `min_side`.
 pub fn pad_to_min_side(image: RgbImage32, min_side: usize) -> RgbImage32 {

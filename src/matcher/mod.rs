@@ -1,11 +1,11 @@
 //! Images in, poses out: encodes templates into kernels, plans how each search image is shown to
-//! the network (see [`plan`]), runs the network on batches of same-sized pieces, decodes peaks
-//! (see [`decode`]) and maps them back into the public pose convention.
+//! the network (see [`plan`]), runs the network on batches of same-sized pieces, reads the heatmap
+//! peaks (see [`peaks`]) and maps them back into the public pose convention.
 
 pub mod candidates;
-pub mod decode;
 pub mod ncc;
 pub mod options;
+pub mod peaks;
 pub mod plan;
 
 use std::sync::Arc;
@@ -17,8 +17,8 @@ use crate::geometry::Pose;
 use crate::imaging::GrayImage32;
 use crate::imaging::{InputConvention, RgbImage32, resize_rgb, to_network_input};
 use crate::model::{InferenceNetwork, TEMPLATE_GRID, Tdcm};
-use decode::{MapPlanes, decode_peak, find_peaks};
 pub use options::{AngleRange, MatchOptions, ScaleRange, ValidOptions};
+use peaks::{MapPlanes, find_peaks, peak_at};
 use plan::{MAX_NETWORK_PIXELS, MIN_INPUT_SIDE, ScalePass, Tile};
 
 /// Smallest template side we accept (the network sees it on a 36x36 grid; below this there is
@@ -79,11 +79,18 @@ pub struct MatchJob<'a> {
 pub struct MatchTimings {
     pub prepare_ms: f64,
     pub network_ms: f64,
-    pub decode_ms: f64,
+    pub peaks_ms: f64,
     /// Screening every candidate (0 without refinement).
     pub screen_ms: f64,
     /// Refining and scoring the candidates that survived the screen.
     pub refine_ms: f64,
+}
+
+impl MatchTimings {
+    /// Everything after the network: peaks, screening and refinement.
+    pub fn postprocess_ms(&self) -> f64 {
+        self.peaks_ms + self.screen_ms + self.refine_ms
+    }
 }
 
 /// The answer to one job.
@@ -100,7 +107,7 @@ pub struct Proposal {
     /// first: every peak at or above the candidate threshold (`min_score` without refinement),
     /// up to the budget per tile.
     pub candidates: Vec<Pose>,
-    /// Time so far (prepare, network, decode).
+    /// Time so far (prepare, network, peaks).
     pub timings: MatchTimings,
 }
 
@@ -203,7 +210,7 @@ impl Matcher {
             }
         }
         let prepare_ms = ms_since(start);
-        let (mut network_ms, mut decode_ms) = (0.0, 0.0);
+        let (mut network_ms, mut peaks_ms) = (0.0, 0.0);
         // Same-sized pieces share a forward pass.
         pieces.sort_by_key(|p| (p.input.width, p.input.height));
         for group in pieces
@@ -223,10 +230,10 @@ impl Matcher {
                     if let Ok(proposal) = &mut results[piece.job] {
                         proposal
                             .candidates
-                            .extend(decode_piece(piece, maps, &jobs[piece.job]));
+                            .extend(piece_poses(piece, maps, &jobs[piece.job]));
                     }
                 }
-                decode_ms += ms_since(t);
+                peaks_ms += ms_since(t);
             }
         }
         let count = results.iter().filter(|r| r.is_ok()).count().max(1) as f64;
@@ -237,7 +244,7 @@ impl Matcher {
             proposal.timings = MatchTimings {
                 prepare_ms: prepare_ms / count,
                 network_ms: network_ms / count,
-                decode_ms: decode_ms / count,
+                peaks_ms: peaks_ms / count,
                 ..MatchTimings::default()
             };
         }
@@ -365,7 +372,7 @@ fn prepare(
 }
 
 /// Peaks of one piece that it owns, as poses in the original image.
-fn decode_piece(piece: &Piece, maps: &[f32], job: &MatchJob) -> Vec<Pose> {
+fn piece_poses(piece: &Piece, maps: &[f32], job: &MatchJob) -> Vec<Pose> {
     // The network output is 4*floor(side/4).
     let w = piece.input.width as usize / 4 * 4;
     let h = piece.input.height as usize / 4 * 4;
@@ -402,7 +409,7 @@ fn decode_piece(piece: &Piece, maps: &[f32], job: &MatchJob) -> Vec<Pose> {
                 && gx < pass.width
                 && gy < pass.height;
             owned.then(|| {
-                let p = decode_peak(&planes, row, col);
+                let p = peak_at(&planes, row, col);
                 Pose {
                     x: (tile.x0 as f32 + p.x + 0.5) / pass.factor_x - 0.5,
                     y: (tile.y0 as f32 + p.y + 0.5) / pass.factor_y - 0.5,

@@ -163,7 +163,7 @@ impl SearchMatcher {
     pub fn forward(&self, images: Tensor<4>, kernels: Tensor<4>) -> MatchMaps {
         let features = self.backbone.forward(images);
         let correlation = depthwise_correlation(features, kernels);
-        self.decode(correlation).0
+        self.maps_from_correlation(correlation).0
     }
 
     pub fn forward_traced(
@@ -173,7 +173,7 @@ impl SearchMatcher {
     ) -> (MatchMaps, SearchTrace) {
         let (features, backbone) = self.backbone.forward_traced(images, GeluGrn::Modules);
         let correlation = depthwise_correlation(features.clone(), kernels);
-        let (maps, (fusion, bn1, bn2)) = self.decode(correlation.clone());
+        let (maps, (fusion, bn1, bn2)) = self.maps_from_correlation(correlation.clone());
         let trace = SearchTrace {
             backbone,
             features,
@@ -185,7 +185,10 @@ impl SearchMatcher {
         (maps, trace)
     }
 
-    fn decode(&self, correlation: Tensor<4>) -> (MatchMaps, (Tensor<4>, Tensor<4>, Tensor<4>)) {
+    fn maps_from_correlation(
+        &self,
+        correlation: Tensor<4>,
+    ) -> (MatchMaps, (Tensor<4>, Tensor<4>, Tensor<4>)) {
         let fusion = self.fusion.forward(correlation); // [b, 96, h, w]
         let (x, bn1, bn2) = self.decoder.forward(fusion.clone()); // [b, 24, 4h, 4w]
         let maps = MatchMaps {

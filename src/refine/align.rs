@@ -14,7 +14,7 @@
 //! rest of the refinement scores with (lighting changes between template and image cost nothing).
 
 use crate::geometry::Pose;
-use crate::imaging::{GrayImage32, gaussian_blur, gradients};
+use crate::imaging::{BilinearTap, GrayImage32, gaussian_blur, gradients};
 
 /// A blurred window of the search image with its gradients, in window coordinates.
 pub(super) struct GradientWindow {
@@ -62,46 +62,33 @@ impl GradientWindow {
         }
     }
 
-    /// Bilinear weights at image coordinates `(x, y)`, clamped to the window: the four
-    /// neighbours' indices and the fractional offsets.
+    /// Bilinear tap at image coordinates `(x, y)`, clamped to the window.
     #[inline]
-    fn corners(&self, x: f32, y: f32) -> ([usize; 4], f32, f32) {
-        let (w, h) = (self.image.width, self.image.height);
-        let x = (x - self.x0).clamp(0.0, (w - 1) as f32);
-        let y = (y - self.y0).clamp(0.0, (h - 1) as f32);
-        let (xi, yi) = (x as usize, y as usize);
-        let (x1, y1) = ((xi + 1).min(w - 1), (yi + 1).min(h - 1));
-        (
-            [yi * w + xi, yi * w + x1, y1 * w + xi, y1 * w + x1],
-            x - xi as f32,
-            y - yi as f32,
+    fn tap(&self, x: f32, y: f32) -> BilinearTap {
+        BilinearTap::new(
+            self.image.width,
+            self.image.height,
+            x - self.x0,
+            y - self.y0,
         )
     }
 
     /// Value at image coordinates `(x, y)` (bilinear, clamped to the window).
     #[inline]
     fn value(&self, x: f32, y: f32) -> f32 {
-        let (at, fx, fy) = self.corners(x, y);
-        bilinear(&self.image.values, at, fx, fy)
+        self.tap(x, y).apply(&self.image.values)
     }
 
     /// Value and gradient at image coordinates `(x, y)` (bilinear, clamped to the window).
     #[inline]
     fn sample(&self, x: f32, y: f32) -> (f32, f32, f32) {
-        let (at, fx, fy) = self.corners(x, y);
+        let tap = self.tap(x, y);
         (
-            bilinear(&self.image.values, at, fx, fy),
-            bilinear(&self.gx, at, fx, fy),
-            bilinear(&self.gy, at, fx, fy),
+            tap.apply(&self.image.values),
+            tap.apply(&self.gx),
+            tap.apply(&self.gy),
         )
     }
-}
-
-#[inline]
-fn bilinear(v: &[f32], [a, b, c, d]: [usize; 4], fx: f32, fy: f32) -> f32 {
-    let top = v[a] + (v[b] - v[a]) * fx;
-    let bottom = v[c] + (v[d] - v[c]) * fx;
-    top + (bottom - top) * fy
 }
 
 /// Template points: offsets from the template centre and values, taken from the template

@@ -69,7 +69,7 @@ pub fn find_peaks(planes: &MapPlanes, min_score: f32, limit: usize) -> Vec<(usiz
 }
 
 /// Sub-pixel pose around the peak at `(row, col)`.
-pub fn decode_peak(planes: &MapPlanes, row: usize, col: usize) -> NetworkPeak {
+pub fn peak_at(planes: &MapPlanes, row: usize, col: usize) -> NetworkPeak {
     let (w, h) = (planes.width, planes.height);
     let at = |r: usize, c: usize| r * w + c;
     let i = at(row, col);
@@ -180,7 +180,7 @@ mod tests {
         let p = planes(&m, 64, 48);
         let peaks = find_peaks(&p, 0.5, 10);
         assert_eq!(peaks, vec![(21, 30)]);
-        let d = decode_peak(&p, 21, 30);
+        let d = peak_at(&p, 21, 30);
         assert!(
             (d.x - 30.3).abs() < 0.05 && (d.y - 20.7).abs() < 0.05,
             "{d:?}"

@@ -97,7 +97,7 @@ fn code_name(code: tonic::Code) -> &'static str {
 }
 
 /// Decodes on a blocking thread: a 40 MP PNG takes long enough to stall the runtime.
-async fn decode(
+async fn decode_off_runtime(
     image: Option<proto::Image>,
     what: &'static str,
     max_pixels: u64,
@@ -108,7 +108,7 @@ async fn decode(
 }
 
 /// One match, shared by `Match` and `MatchStream`.
-async fn run_match(
+async fn match_request(
     engine: &Engine,
     request: proto::MatchRequest,
     received: Instant,
@@ -123,7 +123,7 @@ async fn run_match(
             ));
         }
         let (options, roi) = options_from_proto(request.options, defaults)?;
-        let image = decode(request.image, "image", max_pixels).await?;
+        let image = decode_off_runtime(request.image, "image", max_pixels).await?;
         let (width, height) = (image.width, image.height);
         let decode_ms = received.elapsed().as_secs_f64() * 1e3;
         let answer = engine
@@ -135,7 +135,7 @@ async fn run_match(
             poses = answer.poses.len(),
             queue_ms = answer.queue_ms,
             network_ms = t.prepare_ms + t.network_ms,
-            postprocess_ms = t.decode_ms + t.refine_ms,
+            postprocess_ms = t.postprocess_ms(),
             total_ms = received.elapsed().as_secs_f64() * 1e3,
             "matched"
         );
@@ -149,7 +149,7 @@ async fn run_match(
                 decode_ms: decode_ms as f32,
                 queue_ms: answer.queue_ms as f32,
                 network_ms: (t.prepare_ms + t.network_ms) as f32,
-                postprocess_ms: (t.decode_ms + t.refine_ms) as f32,
+                postprocess_ms: t.postprocess_ms() as f32,
                 total_ms: (received.elapsed().as_secs_f64() * 1e3) as f32,
             }),
         })
@@ -185,7 +185,7 @@ impl PoseMatcher for Api {
         let span = tracing::info_span!("register_template", template_id = %request.template_id);
         let result = async {
             let engine = self.engine()?;
-            let image = decode(request.image, "template image", self.max_image_pixels)
+            let image = decode_off_runtime(request.image, "template image", self.max_image_pixels)
                 .await
                 .map_err(status_of)?;
             let labels = request.labels.into_iter().collect();
@@ -269,7 +269,7 @@ impl PoseMatcher for Api {
         );
         let result = async {
             let engine = self.engine()?;
-            run_match(
+            match_request(
                 &engine,
                 request,
                 received,
@@ -342,7 +342,7 @@ impl PoseMatcher for Api {
                     poses = tracing::field::Empty,
                 );
                 let defaults = &counter.match_defaults;
-                let result = run_match(&engine, request, received, None, max_pixels, defaults)
+                let result = match_request(&engine, request, received, None, max_pixels, defaults)
                     .instrument(span)
                     .await
                     .map_err(|s| {

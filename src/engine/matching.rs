@@ -1,0 +1,105 @@
+//! Matching a registered template: the image cropped to its region of interest, sizes checked,
+//! the work queued for the batching model thread, poses moved back into the full image.
+
+use std::time::Instant;
+
+use tokio::sync::oneshot;
+
+use super::batcher::{BatchError, MatchWork, SubmitError};
+use super::{Engine, EngineError};
+use crate::geometry::Pose;
+use crate::imaging::RgbImage32;
+use crate::matcher::{MatchTimings, ValidOptions};
+
+/// A rectangle of the search image to restrict the search to.
+#[derive(Debug, Clone, Copy, PartialEq, Eq)]
+pub struct Roi {
+    pub x: u32,
+    pub y: u32,
+    pub width: u32,
+    pub height: u32,
+}
+
+/// The answer to one match.
+#[derive(Debug, Clone)]
+pub struct MatchAnswer {
+    /// In the full image's coordinates, best first.
+    pub poses: Vec<Pose>,
+    pub timings: MatchTimings,
+    pub queue_ms: f64,
+    pub batch_size: usize,
+}
+
+impl Engine {
+    /// Finds the template in `image` (optionally only inside `roi`).
+    pub async fn match_image(
+        &self,
+        template_id: &str,
+        image: RgbImage32,
+        options: ValidOptions,
+        roi: Option<Roi>,
+        deadline: Option<Instant>,
+    ) -> Result<MatchAnswer, EngineError> {
+        let template = self.kernel(template_id).await?;
+        let (image, offset) = match roi {
+            None => (image, (0.0, 0.0)),
+            Some(roi) => {
+                check_roi(&roi, image.width, image.height)?;
+                let cropped = image.crop(roi.x, roi.y, roi.width, roi.height);
+                (cropped, (roi.x as f32, roi.y as f32))
+            }
+        };
+        crate::matcher::check_pair_sizes(
+            template.width,
+            template.height,
+            image.width,
+            image.height,
+        )?;
+        let (reply, answer) = oneshot::channel();
+        self.batcher
+            .submit(MatchWork {
+                template,
+                image,
+                options,
+                deadline,
+                reply,
+            })
+            .map_err(|e| match e {
+                SubmitError::Full(e) => EngineError::ResourceExhausted(e.to_string()),
+                SubmitError::Gone(e) => EngineError::Unavailable(e.to_string()),
+            })?;
+        let answer = answer
+            .await
+            .map_err(|_| EngineError::Unavailable("the model thread stopped".into()))?
+            .map_err(|e| match e {
+                BatchError::Match(e) => EngineError::from(e),
+                BatchError::DeadlineExceeded => EngineError::DeadlineExceeded(e.to_string()),
+            })?;
+        let mut poses = answer.outcome.poses;
+        for pose in &mut poses {
+            pose.x += offset.0;
+            pose.y += offset.1;
+        }
+        Ok(MatchAnswer {
+            poses,
+            timings: answer.outcome.timings,
+            queue_ms: answer.queue_ms,
+            batch_size: answer.batch_size,
+        })
+    }
+}
+
+fn check_roi(roi: &Roi, width: u32, height: u32) -> Result<(), EngineError> {
+    let inside = roi.width > 0
+        && roi.height > 0
+        && roi.x as u64 + roi.width as u64 <= width as u64
+        && roi.y as u64 + roi.height as u64 <= height as u64;
+    if inside {
+        Ok(())
+    } else {
+        Err(EngineError::InvalidArgument(format!(
+            "roi x={} y={} {}x{} does not lie inside the {width}x{height} image",
+            roi.x, roi.y, roi.width, roi.height
+        )))
+    }
+}
