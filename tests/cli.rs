@@ -422,3 +422,75 @@ fn classical_matcher_runs_in_batch_mode() {
     assert!(pose["score"].as_f64().unwrap() > 0.9, "{pose}");
     assert!(lines[1]["error"].as_str().unwrap().contains("missing.png"));
 }
+
+/// The comparison workflow of the README: pairs with truth saved by `eval`, answered by any
+/// matcher in batch mode, scored by `score` — here the classical matcher, which must find
+/// the objects of generated S1.5 pairs (known truth) with its default search.
+#[test]
+fn saved_pairs_answered_in_batch_are_scored_against_their_truth() {
+    let photos = common::structured_photo_dir();
+    let tmp = tempfile::tempdir().unwrap();
+    let saved = tmp.path().join("pairs");
+    let (code, _, stderr) = posematch(&[
+        "eval",
+        "--images",
+        photos.path().to_str().unwrap(),
+        "--level",
+        "S1.5",
+        "--count",
+        "6",
+        "--no-refine",
+        "--save",
+        saved.to_str().unwrap(),
+    ]);
+    assert_eq!(code, 0, "{stderr}");
+    let pairs = saved.join("pairs.jsonl");
+    let results = tmp.path().join("ncc.jsonl");
+    let (code, _, stderr) = posematch(&[
+        "match",
+        "--method",
+        "ncc",
+        "--scale-range",
+        "0.8,1.5",
+        "--max-instances",
+        "1",
+        "--min-score",
+        "0.01",
+        "--pairs",
+        pairs.to_str().unwrap(),
+        "--out",
+        results.to_str().unwrap(),
+    ]);
+    assert_eq!(code, 0, "{stderr}");
+    let (code, stdout, stderr) = posematch(&[
+        "score",
+        "--json",
+        "--name",
+        "ncc",
+        "--pairs",
+        pairs.to_str().unwrap(),
+        "--results",
+        results.to_str().unwrap(),
+    ]);
+    assert_eq!(code, 0, "{stderr}");
+    let table: Value = serde_json::from_str(stdout.trim()).unwrap();
+    let summary = &table["rows"][0]["summary"];
+    assert_eq!(summary["pairs"], 6, "{table}");
+    assert!(summary["success"].as_f64().unwrap() >= 5.0 / 6.0, "{table}");
+    assert!(summary["loc_err_px"].as_f64().unwrap() < 0.5, "{table}");
+
+    // A results file that misses pairs counts them as misses, and says so.
+    std::fs::write(&results, "").unwrap();
+    let (code, stdout, stderr) = posematch(&[
+        "score",
+        "--json",
+        "--pairs",
+        pairs.to_str().unwrap(),
+        "--results",
+        results.to_str().unwrap(),
+    ]);
+    assert_eq!(code, 0, "{stderr}");
+    assert!(stderr.contains("6 of 6 pairs have no line"), "{stderr}");
+    let table: Value = serde_json::from_str(stdout.trim()).unwrap();
+    assert_eq!(table["rows"][0]["summary"]["success"], 0.0, "{table}");
+}

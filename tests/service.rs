@@ -947,3 +947,72 @@ async fn grpcurl_lists_describes_and_matches_through_reflection() {
     assert_eq!(answer["imageWidth"], 128);
     server.shutdown(Duration::from_secs(5)).await;
 }
+
+#[tokio::test(flavor = "multi_thread", worker_threads = 2)]
+async fn the_classical_matcher_answers_over_grpc_without_the_network() {
+    let dir = tempfile::tempdir().unwrap();
+    // Untrained weights: whatever is found here, the network did not find it.
+    let (server, mut client) = start(&settings(dir.path(), &[]), untrained_model()).await;
+    client
+        .register_template(register_request("part", template_png(3)))
+        .await
+        .unwrap();
+    let classical = |options: proto::MatchOptions| proto::MatchRequest {
+        template_id: "part".into(),
+        image: encoded(png(&scene(200, 200, 3))),
+        options: Some(options),
+        request_id: "ncc".into(),
+    };
+    let answer = client
+        .r#match(classical(proto::MatchOptions {
+            method: proto::Method::Ncc as i32,
+            max_instances: 1,
+            ..Default::default()
+        }))
+        .await
+        .unwrap()
+        .into_inner();
+    let pose = answer
+        .poses
+        .first()
+        .expect("the classical matcher finds the crop");
+    // The template is the 36x40 crop at (60, 70): its centre is (77.5, 89.5).
+    assert!(
+        (pose.x - 77.5).abs() < 0.5 && (pose.y - 89.5).abs() < 0.5,
+        "{pose:?}"
+    );
+    assert!(pose.angle_deg.abs() < 1.0, "{pose:?}");
+    assert!(
+        (pose.scale_x - 1.0).abs() < 0.03 && (pose.scale_y - 1.0).abs() < 0.03,
+        "{pose:?}"
+    );
+    assert!(pose.score > 0.9, "{pose:?}");
+    assert_eq!(pose.network_score, 0.0, "no network was involved");
+
+    // A search that would hold the cores for minutes is refused, saying what to narrow.
+    let status = client
+        .r#match(classical(proto::MatchOptions {
+            method: proto::Method::Ncc as i32,
+            scale_min: 0.05,
+            scale_max: 20.0,
+            ..Default::default()
+        }))
+        .await
+        .unwrap_err();
+    assert_eq!(status.code(), Code::InvalidArgument, "{status:?}");
+    assert!(status.message().contains("roi"), "{}", status.message());
+    let status = client
+        .r#match(classical(proto::MatchOptions {
+            method: 7,
+            ..Default::default()
+        }))
+        .await
+        .unwrap_err();
+    assert_eq!(status.code(), Code::InvalidArgument, "{status:?}");
+    assert!(
+        status.message().contains("METHOD_NCC"),
+        "{}",
+        status.message()
+    );
+    drop(server);
+}

@@ -18,7 +18,7 @@ use crate::evaluation::{
 };
 use crate::geometry::Pose;
 use crate::imaging::GrayImage32;
-use crate::matcher::MatchOptions;
+use crate::matcher::{MatchOptions, Method};
 use crate::synth::{Level, PairSpec, PhotoSet, SyntheticPair, make_multi_instance, make_pair};
 
 #[derive(Args, Debug)]
@@ -54,8 +54,8 @@ pub struct EvalArgs {
     pub multi_instance: bool,
     /// Matcher: `tdcm` (the network; rows without and with refinement) or `ncc` (the classical
     /// baseline, always refined; needs no weights).
-    #[arg(long, value_enum, default_value = "tdcm")]
-    pub method: super::Method,
+    #[arg(long, default_value = "tdcm", value_parser = str::parse::<Method>)]
+    pub method: Method,
     /// Also print each path's Succ per source photo (single-instance pairs): which photos the
     /// misses come from.
     #[arg(long)]
@@ -99,8 +99,8 @@ pub fn run(args: EvalArgs) -> Result<(), CliError> {
     let photos =
         PhotoSet::load(&args.images, search_side).map_err(|e| CliError::Input(e.to_string()))?;
     let matcher = match args.method {
-        super::Method::Tdcm => Some(load_model(&args.model)?),
-        super::Method::Ncc => None,
+        Method::Tdcm => Some(load_model(&args.model)?),
+        Method::Ncc => None,
     };
     let (tw, th) = args.template_size;
     let spec = PairSpec {
@@ -124,6 +124,7 @@ pub fn run(args: EvalArgs) -> Result<(), CliError> {
         min_score: args.verification.min_score,
         candidate_threshold: args.verification.candidate_threshold,
         max_candidates: args.verification.max_candidates,
+        method: args.method,
         ..MatchOptions::default()
     }
     .validate()
@@ -371,9 +372,9 @@ pub(super) fn summary_table(rows: &[(&str, Summary)]) -> String {
 }
 
 /// Lost/gained successes of the refined and of the verified path against the network's.
-type PathChanges = ((usize, usize), (usize, usize));
+pub(super) type PathChanges = ((usize, usize), (usize, usize));
 
-fn print_table(
+pub(super) fn print_table(
     label: &str,
     rows: &[(&str, Summary)],
     changes: Option<PathChanges>,
@@ -407,7 +408,7 @@ fn print_table(
     }
 }
 
-fn print_detection(
+pub(super) fn print_detection(
     label: &str,
     rows: &[(&str, &DetectionCounts)],
     calibration: Option<&Calibration>,
@@ -448,7 +449,7 @@ fn print_detection(
 /// How often a verified answer is right, by its score: every answer of the verified path
 /// (whatever `min_score`), counted per score band.
 #[derive(Debug, Default, serde::Serialize)]
-struct Calibration {
+pub(super) struct Calibration {
     /// Per band of [`Calibration::BANDS`]: answers, and how many of them were right.
     answers: [usize; 9],
     right: [usize; 9],

@@ -12,7 +12,7 @@ use serde_json::{Value, json};
 use super::{CliError, ModelArgs, load_model, read_image};
 use crate::imaging::{GrayImage32, RgbImage32};
 use crate::matcher::{
-    AngleRange, EncodedTemplate, MatchOptions, Matcher, ScaleRange, ValidOptions,
+    AngleRange, EncodedTemplate, MatchOptions, Matcher, Method, ScaleRange, ValidOptions,
 };
 
 #[derive(Args, Debug)]
@@ -27,7 +27,9 @@ pub struct MatchArgs {
     /// relative paths are relative to this file's folder.
     #[arg(long, requires = "out")]
     pub pairs: Option<PathBuf>,
-    /// Batch mode output: one `{"id", "poses", "ms"}` (or `{"id", "error"}`) per input line.
+    /// Batch mode output: one `{"id", "poses", "ms"}` (or `{"id", "error"}`) per input line;
+    /// `ms` is the matching alone (files read and decoded before; a new template is encoded
+    /// before).
     #[arg(long, requires = "pairs")]
     pub out: Option<PathBuf>,
     #[command(flatten)]
@@ -52,8 +54,8 @@ pub struct MatchArgs {
     pub no_refine: bool,
     /// Matcher: `tdcm` (the network) or `ncc` (classical exhaustive search, no weights needed;
     /// slow), for single pairs and `--pairs` alike.
-    #[arg(long, value_enum, default_value = "tdcm")]
-    pub method: super::Method,
+    #[arg(long, default_value = "tdcm", value_parser = str::parse::<Method>)]
+    pub method: Method,
     /// Draw the poses on the search image and save it here (PNG).
     #[arg(long, conflicts_with = "pairs")]
     pub overlay: Option<PathBuf>,
@@ -91,6 +93,7 @@ impl MatchArgs {
             angle_range: self.angle_range,
             scale_range: self.scale_range,
             refine: !self.no_refine,
+            method: self.method,
         }
         .validate()
         .map_err(CliError::Usage)
@@ -102,8 +105,8 @@ pub fn run(args: MatchArgs) -> Result<(), CliError> {
     // Read inputs before loading the model so that bad files fail fast.
     if let (Some(pairs), Some(out)) = (&args.pairs, &args.out) {
         let matcher = match args.method {
-            super::Method::Tdcm => Some(load_model(&args.model)?),
-            super::Method::Ncc => None,
+            Method::Tdcm => Some(load_model(&args.model)?),
+            Method::Ncc => None,
         };
         return run_pairs(matcher.as_ref(), pairs, out, &options);
     }
@@ -114,7 +117,7 @@ pub fn run(args: MatchArgs) -> Result<(), CliError> {
     };
     let template = read_image(template_path)?;
     let image = read_image(image_path)?;
-    let (poses, ms) = if args.method == super::Method::Ncc {
+    let (poses, ms) = if args.method == Method::Ncc {
         let start = Instant::now();
         let poses = ncc_answer(&template, &image, &options)?;
         (poses, start.elapsed().as_secs_f64() * 1e3)
@@ -144,18 +147,29 @@ pub fn run(args: MatchArgs) -> Result<(), CliError> {
 }
 
 /// The classical matcher's answer (`--method ncc`): sizes checked as the network path checks
-/// them.
+/// them, and its cost bounded.
 fn ncc_answer(
     template: &RgbImage32,
     image: &RgbImage32,
     options: &MatchOptions,
 ) -> Result<Vec<crate::geometry::Pose>, crate::matcher::MatchError> {
     crate::matcher::check_pair_sizes(template.width, template.height, image.width, image.height)?;
+    crate::matcher::ncc::check_work(
+        template.width,
+        template.height,
+        image.width,
+        image.height,
+        options,
+    )?;
     Ok(crate::matcher::ncc::ncc_match(
         &GrayImage32::from_rgb(template),
         &GrayImage32::from_rgb(image),
         options,
     ))
+}
+
+fn ms_since(start: Instant) -> f64 {
+    start.elapsed().as_secs_f64() * 1e3
 }
 
 fn round3(v: f64) -> f64 {
@@ -181,12 +195,11 @@ fn run_pairs(
         if line.trim().is_empty() {
             continue;
         }
-        let start = Instant::now();
         let (id, result) = match_line(matcher, &line, &base, options, &mut templates);
         let record = match result {
-            Ok(poses) => {
+            Ok((poses, ms)) => {
                 ok += 1;
-                json!({"id": id, "poses": poses, "ms": round3(start.elapsed().as_secs_f64() * 1e3)})
+                json!({"id": id, "poses": poses, "ms": round3(ms)})
             }
             Err(message) => {
                 failed += 1;
@@ -209,7 +222,7 @@ fn match_line(
     base: &Path,
     options: &ValidOptions,
     templates: &mut HashMap<PathBuf, EncodedTemplate>,
-) -> (Value, Result<Vec<crate::geometry::Pose>, String>) {
+) -> (Value, Result<(Vec<crate::geometry::Pose>, f64), String>) {
     let record: Value = match serde_json::from_str(line) {
         Ok(v) => v,
         Err(e) => return (Value::Null, Err(format!("not valid JSON: {e}"))),
@@ -239,7 +252,9 @@ fn match_line(
         let Some(matcher) = matcher else {
             let template = read_image(&template_path).map_err(|e| e.to_string())?;
             let image = read_image(&image_path).map_err(|e| e.to_string())?;
-            return ncc_answer(&template, &image, &options).map_err(|e| e.to_string());
+            let start = Instant::now();
+            let poses = ncc_answer(&template, &image, &options).map_err(|e| e.to_string())?;
+            return Ok((poses, ms_since(start)));
         };
         if !templates.contains_key(&template_path) {
             let template = read_image(&template_path).map_err(|e| e.to_string())?;
@@ -249,10 +264,11 @@ fn match_line(
             templates.insert(template_path.clone(), encoded);
         }
         let image = read_image(&image_path).map_err(|e| e.to_string())?;
+        let start = Instant::now();
         let outcome = matcher
             .match_one(&templates[&template_path], &image, &options)
             .map_err(|e| e.to_string())?;
-        Ok(outcome.poses)
+        Ok((outcome.poses, ms_since(start)))
     })();
     (id, result)
 }

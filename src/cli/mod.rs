@@ -5,6 +5,7 @@ mod eval_cmd;
 mod health_cmd;
 mod match_cmd;
 mod overlay;
+mod score_cmd;
 mod serve_cmd;
 mod train_cmd;
 
@@ -37,6 +38,8 @@ pub enum Command {
     Match(MatchArgs),
     /// Measure accuracy on generated pairs with exact ground truth (the paper's metrics).
     Eval(eval_cmd::EvalArgs),
+    /// Score answers any matcher wrote for saved pairs (`eval --save`) against their truth.
+    Score(score_cmd::ScoreArgs),
     /// Train the network (or fine-tune it) on pairs cut from folders of unlabeled photos.
     Train(train_cmd::TrainArgs),
     /// Run the gRPC service (template registry, batching, health, reflection, metrics).
@@ -72,7 +75,7 @@ pub struct VerificationArgs {
     #[arg(long, default_value_t = crate::matcher::options::DEFAULT_CANDIDATE_THRESHOLD)]
     pub candidate_threshold: f32,
     /// Most candidates verified per network tile; 0 = automatic (3 per --max-instances, at
-    /// least 50).
+    /// least 100).
     #[arg(long, default_value_t = 0)]
     pub max_candidates: usize,
 }
@@ -88,15 +91,6 @@ pub struct ModelArgs {
     /// trained) or `gray` (the authors' test.py demo).
     #[arg(long, default_value = "imagenet", value_parser = str::parse::<InputConvention>)]
     pub convention: InputConvention,
-}
-
-/// Which matcher answers.
-#[derive(Debug, Clone, Copy, PartialEq, Eq, clap::ValueEnum)]
-pub enum Method {
-    /// The TDCM network (needs weights), then refinement.
-    Tdcm,
-    /// Exhaustive rotation x scale NCC over a pyramid (no weights; slow), then refinement.
-    Ncc,
 }
 
 pub(crate) fn parse_weights_source(s: &str) -> Result<WeightsSource, String> {
@@ -171,6 +165,7 @@ pub fn run(cli: Cli) -> Result<(), CliError> {
     match cli.command {
         Command::Match(args) => match_cmd::run(args),
         Command::Eval(args) => eval_cmd::run(args),
+        Command::Score(args) => score_cmd::run(args),
         Command::Serve(args) => serve_cmd::run(args),
         Command::Train(args) => train_cmd::run(args),
         Command::Health(args) => health_cmd::run(args),

@@ -1,6 +1,8 @@
 //! Matching a registered template: the image cropped to its region of interest, sizes checked,
-//! the work queued for the batching model thread, poses moved back into the full image.
+//! the work queued for the batching model thread (or, for the classical method, run on a
+//! blocking thread one search at a time), poses moved back into the full image.
 
+use std::sync::Arc;
 use std::time::Instant;
 
 use tokio::sync::oneshot;
@@ -8,8 +10,8 @@ use tokio::sync::oneshot;
 use super::batcher::{BatchError, MatchWork, SubmitError};
 use super::{Engine, EngineError};
 use crate::geometry::Pose;
-use crate::imaging::RgbImage32;
-use crate::matcher::{MatchTimings, ValidOptions};
+use crate::imaging::{GrayImage32, RgbImage32};
+use crate::matcher::{EncodedTemplate, MatchTimings, Method, ValidOptions, ncc};
 
 /// A rectangle of the search image to restrict the search to.
 #[derive(Debug, Clone, Copy, PartialEq, Eq)]
@@ -55,6 +57,16 @@ impl Engine {
             image.width,
             image.height,
         )?;
+        if options.method == Method::Ncc {
+            let mut answer = self
+                .match_classical(template, image, options, deadline)
+                .await?;
+            for pose in &mut answer.poses {
+                pose.x += offset.0;
+                pose.y += offset.1;
+            }
+            return Ok(answer);
+        }
         let (reply, answer) = oneshot::channel();
         self.batcher
             .submit(MatchWork {
@@ -85,6 +97,55 @@ impl Engine {
             timings: answer.outcome.timings,
             queue_ms: answer.queue_ms,
             batch_size: answer.batch_size,
+        })
+    }
+}
+
+impl Engine {
+    /// The classical matcher on a blocking thread, one search at a time; its cost is checked
+    /// before it waits.
+    async fn match_classical(
+        &self,
+        template: Arc<EncodedTemplate>,
+        image: RgbImage32,
+        options: ValidOptions,
+        deadline: Option<Instant>,
+    ) -> Result<MatchAnswer, EngineError> {
+        ncc::check_work(
+            template.width,
+            template.height,
+            image.width,
+            image.height,
+            &options,
+        )?;
+        let queued = Instant::now();
+        let permit = self.classical.acquire();
+        let _permit = match deadline {
+            None => permit.await,
+            Some(deadline) => tokio::time::timeout_at(deadline.into(), permit)
+                .await
+                .map_err(|_| {
+                    EngineError::DeadlineExceeded(
+                        "the request's deadline passed while it waited for the classical matcher"
+                            .into(),
+                    )
+                })?,
+        }
+        .map_err(|_| EngineError::Unavailable("the engine is shutting down".into()))?;
+        let queue_ms = queued.elapsed().as_secs_f64() * 1e3;
+        let start = Instant::now();
+        let poses = super::blocking(move || {
+            ncc::ncc_match(&template.gray, &GrayImage32::from_rgb(&image), &options)
+        })
+        .await?;
+        Ok(MatchAnswer {
+            poses,
+            timings: MatchTimings {
+                refine_ms: start.elapsed().as_secs_f64() * 1e3,
+                ..MatchTimings::default()
+            },
+            queue_ms,
+            batch_size: 1,
         })
     }
 }

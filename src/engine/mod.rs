@@ -88,6 +88,8 @@ pub struct Engine {
     writes: Mutex<()>,
     kernels: moka::sync::Cache<String, Arc<EncodedTemplate>>,
     batcher: Batcher,
+    /// One classical (NCC) search at a time: each keeps the cores busy for about a second.
+    classical: tokio::sync::Semaphore,
     metrics: Metrics,
 }
 
@@ -130,6 +132,7 @@ impl Engine {
             writes: Mutex::new(()),
             kernels,
             batcher,
+            classical: tokio::sync::Semaphore::new(1),
             metrics,
         })
     }

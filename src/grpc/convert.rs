@@ -11,7 +11,7 @@ use crate::engine::store::TemplateMeta;
 use crate::engine::{EngineError, Roi};
 use crate::geometry::Pose;
 use crate::imaging::{DecodeError, ImageLimits, RgbImage32, decode_image};
-use crate::matcher::{AngleRange, MatchOptions, ScaleRange, ValidOptions};
+use crate::matcher::{AngleRange, MatchOptions, Method, ScaleRange, ValidOptions};
 
 /// The one mapping from engine errors to gRPC status codes. Failures of ours (store, internal)
 /// are logged in full and answered without server paths or details.
@@ -190,6 +190,16 @@ pub fn options_from_proto(
         angle_range,
         scale_range,
         refine: !o.no_refine,
+        method: match proto::Method::try_from(o.method) {
+            Ok(proto::Method::Unspecified | proto::Method::Tdcm) => Method::Tdcm,
+            Ok(proto::Method::Ncc) => Method::Ncc,
+            Err(_) => {
+                return invalid(format!(
+                    "options.method {} is unknown: use METHOD_TDCM (1) or METHOD_NCC (2)",
+                    o.method
+                ));
+            }
+        },
     };
     let options = options
         .validate()

@@ -28,7 +28,7 @@ pub const SPARE_SURVIVORS: usize = 1;
 
 /// Degrees by which the screen and confirmation look beyond the caller's angle range (the
 /// final filter is exact), so that an object at the edge of the range is not missed.
-const ANGLE_MARGIN_DEG: f32 = 5.0;
+pub(crate) const ANGLE_MARGIN_DEG: f32 = 5.0;
 
 /// A candidate that passed the screen, with its screened box for the duplicate check.
 struct Survivor {

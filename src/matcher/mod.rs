@@ -17,7 +17,7 @@ use crate::geometry::Pose;
 use crate::imaging::GrayImage32;
 use crate::imaging::{InputConvention, RgbImage32, resize_rgb, to_network_input};
 use crate::model::{InferenceNetwork, TEMPLATE_GRID, Tdcm};
-pub use options::{AngleRange, MatchOptions, ScaleRange, ValidOptions};
+pub use options::{AngleRange, MatchOptions, Method, ScaleRange, ValidOptions};
 use peaks::{MapPlanes, find_peaks, peak_at};
 use plan::{MAX_NETWORK_PIXELS, MIN_INPUT_SIDE, ScalePass, Tile};
 
@@ -53,6 +53,10 @@ pub enum MatchError {
         hi: f32,
         pixels: u64,
     },
+    #[error(
+        "the classical matcher would score {scorings} template placements here (limit {limit}); crop the image (roi), narrow the angle or scale range, or use the network (method tdcm)"
+    )]
+    ClassicalTooSlow { scorings: u64, limit: u64 },
 }
 
 /// A template after encoding: what the service caches per template ID.

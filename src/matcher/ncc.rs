@@ -13,45 +13,123 @@ use crate::geometry::Pose;
 use crate::imaging::GrayImage32;
 use crate::refine::{Screened, TemplatePoints, Verifier};
 
-use super::candidates::select;
+use super::MatchError;
+use super::candidates::{ANGLE_MARGIN_DEG, select};
 use super::options::MatchOptions;
 
-/// Finds the template in the image; poses in the public convention, best first.
+/// Ratio between neighbouring scales of the coarse grid.
+const SCALE_STEP: f32 = 1.2;
+/// Angle step of the coarse grid: this many pixels of arc at the template's rim.
+const ANGLE_STEP_PX: f32 = 1.5;
+
+/// Distinct coarse peaks confirmed: this many per wanted instance, plus
+/// [`PEAKS_BEYOND_INSTANCES`].
+const PEAKS_PER_INSTANCE: usize = 4;
+const PEAKS_BEYOND_INSTANCES: usize = 12;
+
+/// Coarse positions are scored every `STRIDE` pixels of the pyramid level.
+const STRIDE: usize = 2;
+
+/// Most sparse-ZNCC evaluations one search may cost (positions x angles x scale pairs at the
+/// coarse level): about 25 s on the two-core target machine. Beyond it a search is refused with
+/// what to narrow instead of holding a core for minutes.
+pub const MAX_SCORINGS: u64 = 40_000_000;
+
+/// What the exhaustive search visits: the pyramid level and the angle x scale grid.
+struct SearchPlan {
+    /// Downsampling factor of the coarse level (a power of two).
+    factor: f32,
+    levels: usize,
+    scales: Vec<f32>,
+    angles: Vec<f32>,
+    /// Coarse positions, `(columns, rows)`.
+    grid: (usize, usize),
+}
+
+impl SearchPlan {
+    /// Shrinks until the template's shorter side is about 16 px.
+    fn new(tw: usize, th: usize, iw: usize, ih: usize, options: &MatchOptions) -> Self {
+        let (mut tw, mut th, mut iw, mut ih) = (tw, th, iw, ih);
+        let mut levels = 0;
+        while tw.min(th) >= 32 && iw.min(ih) >= 64 {
+            // As `GrayImage32::downsample` halves a side.
+            (tw, th, iw, ih) = (tw / 2, th / 2, iw / 2, ih / 2);
+            levels += 1;
+        }
+        // Scales relative to the registered template, the same at every level.
+        let (lo, hi) = options.scale_range.map_or((1.0, 1.0), |r| (r.min, r.max));
+        let scales: Vec<f32> = if hi > lo {
+            let n = ((hi / lo).ln() / SCALE_STEP.ln()).ceil() as usize;
+            (0..=n)
+                .map(|k| lo * (hi / lo).powf(k as f32 / n as f32))
+                .collect()
+        } else {
+            vec![lo]
+        };
+        let radius = tw.max(th) as f32 / 2.0;
+        let angle_step = (ANGLE_STEP_PX / radius).to_degrees().clamp(2.0, 12.0);
+        let angles: Vec<f32> = (0..(360.0 / angle_step).ceil() as usize)
+            .map(|k| -180.0 + angle_step * (k as f32 + 0.5))
+            .filter(|a| options.angle_range.is_none_or(|r| r.contains(*a)))
+            .collect();
+        Self {
+            factor: (1u32 << levels) as f32,
+            levels,
+            scales,
+            angles,
+            grid: (iw.div_ceil(STRIDE), ih.div_ceil(STRIDE)),
+        }
+    }
+
+    fn scorings(&self) -> u64 {
+        (self.grid.0 * self.grid.1) as u64
+            * self.angles.len() as u64
+            * (self.scales.len() * self.scales.len()) as u64
+    }
+}
+
+/// Refuses a search that would cost more than [`MAX_SCORINGS`], saying what to narrow.
+pub fn check_work(
+    tw: u32,
+    th: u32,
+    iw: u32,
+    ih: u32,
+    options: &MatchOptions,
+) -> Result<(), MatchError> {
+    let plan = SearchPlan::new(tw as usize, th as usize, iw as usize, ih as usize, options);
+    let scorings = plan.scorings();
+    if scorings > MAX_SCORINGS {
+        return Err(MatchError::ClassicalTooSlow {
+            scorings,
+            limit: MAX_SCORINGS,
+        });
+    }
+    Ok(())
+}
+
+/// Finds the template in the image; poses in the public convention, best first. The caller
+/// checks the cost first ([`check_work`]).
 pub fn ncc_match(template: &GrayImage32, image: &GrayImage32, options: &MatchOptions) -> Vec<Pose> {
-    // Pyramid level: shrink until the template's shorter side is about 16 px.
+    let plan = SearchPlan::new(
+        template.width,
+        template.height,
+        image.width,
+        image.height,
+        options,
+    );
     let mut level_template = template.clone();
     let mut level_image = image.clone();
-    let mut factor = 1.0f32;
-    while level_template.width.min(level_template.height) >= 32
-        && level_image.width.min(level_image.height) >= 64
-    {
+    for _ in 0..plan.levels {
         level_template = level_template.downsample();
         level_image = level_image.downsample();
-        factor *= 2.0;
     }
+    let factor = plan.factor;
     let points = TemplatePoints::new(&level_template, 12);
-    // Scales relative to the registered template, the same at every level.
     let (lo, hi) = options.scale_range.map_or((1.0, 1.0), |r| (r.min, r.max));
-    let scales: Vec<f32> = if hi > lo {
-        let n = ((hi / lo).ln() / 1.1f32.ln()).ceil() as usize;
-        (0..=n)
-            .map(|k| lo * (hi / lo).powf(k as f32 / n as f32))
-            .collect()
-    } else {
-        vec![lo]
-    };
-    let radius = (level_template.width.max(level_template.height) as f32) / 2.0;
-    let angle_step = (1.5 / radius).to_degrees().clamp(2.0, 12.0);
-    let angles: Vec<f32> = (0..(360.0 / angle_step).ceil() as usize)
-        .map(|k| -180.0 + angle_step * (k as f32 + 0.5))
-        .filter(|a| options.angle_range.is_none_or(|r| r.contains(*a)))
-        .collect();
-    // Best score per coarse position (stride 2), with the pose that gave it.
-    let stride = 2;
-    let (gw, gh) = (
-        level_image.width.div_ceil(stride),
-        level_image.height.div_ceil(stride),
-    );
+    let (scales, angles) = (&plan.scales, &plan.angles);
+    // Best score per coarse position (every STRIDE px), with the pose that gave it.
+    let stride = STRIDE;
+    let (gw, gh) = plan.grid;
     let empty = (
         -1.0f32,
         Pose {
@@ -65,30 +143,32 @@ pub fn ncc_match(template: &GrayImage32, image: &GrayImage32, options: &MatchOpt
         },
     );
     // One best-score map per angle, in parallel, then the best over angles.
+    let padded = Padded::new(&level_image, &points, hi);
     let per_angle: Vec<Vec<(f32, Pose)>> = angles
         .par_iter()
         .map(|&angle_deg| {
             let mut best = vec![empty; gw * gh];
-            for &scale_x in &scales {
-                for &scale_y in &scales {
-                    for gy in 0..gh {
-                        for gx in 0..gw {
-                            let pose = Pose {
-                                x: (gx * stride) as f32,
-                                y: (gy * stride) as f32,
-                                angle_deg,
-                                scale_x,
-                                scale_y,
-                                score: 0.0,
-                                network_score: 0.0,
-                            };
-                            let s = points.score(&level_image, &pose);
-                            let cell = &mut best[gy * gw + gx];
-                            if s > cell.0 {
-                                *cell = (s, pose);
-                            }
+            for &scale_x in scales {
+                for &scale_y in scales {
+                    let pose = Pose {
+                        angle_deg,
+                        scale_x,
+                        scale_y,
+                        ..empty.1
+                    };
+                    padded.score_grid(&points, &pose, (gw, gh), stride, |gx, gy, s| {
+                        let cell = &mut best[gy * gw + gx];
+                        if s > cell.0 {
+                            *cell = (
+                                s,
+                                Pose {
+                                    x: (gx * stride) as f32,
+                                    y: (gy * stride) as f32,
+                                    ..pose
+                                },
+                            );
                         }
-                    }
+                    });
                 }
             }
             best
@@ -115,13 +195,29 @@ pub fn ncc_match(template: &GrayImage32, image: &GrayImage32, options: &MatchOpt
         }
     }
     peaks.sort_by(|a, b| b.0.total_cmp(&a.0));
-    peaks.truncate(4 * options.max_instances + 4);
+    // Distinct places only: a peak within half the template's shorter side of a stronger one
+    // is the same place (texture along an edge gives a ridge of peaks).
+    let radius = level_template.width.min(level_template.height) as f32 / 2.0;
+    let wanted = PEAKS_PER_INSTANCE * options.max_instances + PEAKS_BEYOND_INSTANCES;
+    let mut distinct: Vec<(f32, Pose)> = Vec::with_capacity(wanted);
+    for peak in peaks {
+        if distinct.len() == wanted {
+            break;
+        }
+        let (x, y) = (peak.1.x, peak.1.y);
+        if distinct
+            .iter()
+            .all(|(_, p)| (p.x - x).hypot(p.y - y) >= radius)
+        {
+            distinct.push(peak);
+        }
+    }
     let verifier = Verifier::new(template, image, (lo, hi), |angle| {
         options
             .angle_range
-            .is_none_or(|r| r.contains_within(angle, 5.0))
+            .is_none_or(|r| r.contains_within(angle, ANGLE_MARGIN_DEG))
     });
-    let poses: Vec<Pose> = peaks
+    let poses: Vec<Pose> = distinct
         .into_par_iter()
         .map(|(score, coarse)| {
             // Back to full resolution: pixel centres scale as (x + 0.5)·f − 0.5.
@@ -135,7 +231,8 @@ pub fn ncc_match(template: &GrayImage32, image: &GrayImage32, options: &MatchOpt
                 return initial; // scored by the coarse level's sparse ZNCC
             }
             // Refined, the score is the similarity at the refined pose, as for the network's
-            // answers.
+            // answers (the same verifier; the coarse search already chose angle and scales, so
+            // every peak is confirmed without a screen).
             let verified = verifier.confirm(
                 &Screened {
                     pose: initial,
@@ -157,9 +254,149 @@ pub fn ncc_match(template: &GrayImage32, image: &GrayImage32, options: &MatchOpt
     )
 }
 
+/// The coarse level with its border replicated far enough that every template point of every
+/// searched pose lands inside: the exhaustive search then reads pixels without a bounds check
+/// or a clamp. Bilinear sampling of the padded image equals [`GrayImage32::sample`]'s clamped
+/// sampling of the original.
+struct Padded {
+    values: Vec<f32>,
+    width: usize,
+    pad: usize,
+}
+
+impl Padded {
+    fn new(image: &GrayImage32, points: &TemplatePoints, max_scale: f32) -> Self {
+        let reach = points
+            .points()
+            .map(|((u, v), _)| u.hypot(v))
+            .fold(0f32, f32::max);
+        let pad = (reach * max_scale).ceil() as usize + 2;
+        let width = image.width + 2 * pad;
+        let height = image.height + 2 * pad;
+        let mut values = Vec::with_capacity(width * height);
+        for y in 0..height {
+            let sy = y.saturating_sub(pad).min(image.height - 1);
+            let row = &image.values[sy * image.width..(sy + 1) * image.width];
+            values.extend(std::iter::repeat_n(row[0], pad));
+            values.extend_from_slice(row);
+            values.extend(std::iter::repeat_n(row[image.width - 1], pad));
+        }
+        Self { values, width, pad }
+    }
+
+    /// The sparse ZNCC of [`TemplatePoints::score`] for `pose`'s angle and scales at every
+    /// grid position `(gx·stride, gy·stride)`, handed to `visit(gx, gy, score)`. On an integer
+    /// grid each point's bilinear weights are the same at every position, so they are worked
+    /// out once per pose and a row of positions is one streaming pass per point.
+    fn score_grid(
+        &self,
+        points: &TemplatePoints,
+        pose: &Pose,
+        (gw, gh): (usize, usize),
+        stride: usize,
+        mut visit: impl FnMut(usize, usize, f32),
+    ) {
+        let (s, c) = pose.angle_deg.to_radians().sin_cos();
+        let (ax, ay) = (pose.scale_x * c, -pose.scale_x * s);
+        let (bx, by) = (pose.scale_y * s, pose.scale_y * c);
+        // Per point: index of the top-left neighbour relative to the position, the bilinear
+        // weights, and the template weight.
+        let taps: Vec<(usize, [f32; 4], f32)> = points
+            .points()
+            .map(|((u, v), w)| {
+                let (dx, dy) = (ax * u + bx * v, ay * u + by * v);
+                let (fx, fy) = (dx - dx.floor(), dy - dy.floor());
+                let x = (dx.floor() as isize + self.pad as isize) as usize;
+                let y = (dy.floor() as isize + self.pad as isize) as usize;
+                let weights = [
+                    (1.0 - fx) * (1.0 - fy),
+                    fx * (1.0 - fy),
+                    (1.0 - fx) * fy,
+                    fx * fy,
+                ];
+                (y * self.width + x, weights, w)
+            })
+            .collect();
+        let n = taps.len() as f32;
+        let (mut sum, mut sum_sq, mut dot) = (vec![0f32; gw], vec![0f32; gw], vec![0f32; gw]);
+        let row_width = self.width;
+        for gy in 0..gh {
+            sum.fill(0.0);
+            sum_sq.fill(0.0);
+            dot.fill(0.0);
+            let row = gy * stride * row_width;
+            for &(offset, [w00, w01, w10, w11], w) in &taps {
+                let top = &self.values[row + offset..];
+                let bottom = &top[row_width..];
+                for gx in 0..gw {
+                    let i = gx * stride;
+                    let value =
+                        w00 * top[i] + w01 * top[i + 1] + w10 * bottom[i] + w11 * bottom[i + 1];
+                    sum[gx] += value;
+                    sum_sq[gx] += value * value;
+                    dot[gx] += w * value;
+                }
+            }
+            for gx in 0..gw {
+                let variance = sum_sq[gx] - sum[gx] * sum[gx] / n;
+                let score = if variance <= 1e-9 {
+                    -1.0
+                } else {
+                    dot[gx] / variance.sqrt()
+                };
+                visit(gx, gy, score);
+            }
+        }
+    }
+}
+
 #[cfg(test)]
 mod tests {
     use super::*;
+
+    #[test]
+    fn the_grid_scorer_equals_the_pointwise_score_borders_included() {
+        let (w, h) = (40usize, 30usize);
+        let image = GrayImage32 {
+            width: w,
+            height: h,
+            values: (0..w * h)
+                .map(|i| ((i % w) as f32 * 0.37).sin() * ((i / w) as f32 * 0.21).cos())
+                .collect(),
+        };
+        let template = GrayImage32 {
+            width: 12,
+            height: 10,
+            values: (0..120).map(|i| ((i * 7919) % 97) as f32 / 97.0).collect(),
+        };
+        let points = TemplatePoints::new(&template, 12);
+        let padded = Padded::new(&image, &points, 1.4);
+        for (angle_deg, scale_x, scale_y) in [(0.0, 1.0, 1.0), (-63.0, 1.4, 0.8), (171.0, 0.9, 1.3)]
+        {
+            let pose = Pose {
+                x: 0.0,
+                y: 0.0,
+                angle_deg,
+                scale_x,
+                scale_y,
+                score: 0.0,
+                network_score: 0.0,
+            };
+            let grid = (w.div_ceil(STRIDE), h.div_ceil(STRIDE));
+            let mut visited = 0;
+            padded.score_grid(&points, &pose, grid, STRIDE, |gx, gy, fast| {
+                let at = Pose {
+                    x: (gx * STRIDE) as f32,
+                    y: (gy * STRIDE) as f32,
+                    ..pose
+                };
+                let slow = points.score(&image, &at);
+                assert!((fast - slow).abs() < 1e-4, "{at:?}: {fast} vs {slow}");
+                visited += 1;
+            });
+            assert_eq!(visited, grid.0 * grid.1);
+        }
+    }
 
     #[test]
     fn finds_a_rotated_copy_without_any_weights() {

@@ -53,6 +53,9 @@ pub struct ScaleRange {
     pub max: f32,
 }
 
+/// Relative slack of [`ScaleRange::contains`] (2 %).
+pub const SCALE_TOLERANCE: f32 = 0.02;
+
 /// Smallest and largest scale we accept in a range: beyond these the search image would be
 /// resampled by more than 100x.
 pub const SCALE_LIMITS: (f32, f32) = (0.05, 20.0);
@@ -73,8 +76,36 @@ impl ScaleRange {
         Ok(Self { min, max })
     }
 
+    /// Whether an answer's scale lies in the range, within [`SCALE_TOLERANCE`]: the range
+    /// steers the search, and a refined scale of an object right at a bound can come out a
+    /// fraction of a percent beyond it.
     pub fn contains(&self, scale: f32) -> bool {
-        scale >= self.min * 0.999 && scale <= self.max * 1.001
+        scale >= self.min / (1.0 + SCALE_TOLERANCE) && scale <= self.max * (1.0 + SCALE_TOLERANCE)
+    }
+}
+
+/// Which matcher answers a request.
+#[derive(Debug, Clone, Copy, PartialEq, Eq, Default)]
+pub enum Method {
+    /// The TDCM network proposes, verification and refinement on the image decide.
+    #[default]
+    Tdcm,
+    /// The classical matcher: exhaustive rotation x scale NCC over a pyramid, then the same
+    /// refinement (no weights; seconds per image, see [`super::ncc`]).
+    Ncc,
+}
+
+impl std::str::FromStr for Method {
+    type Err = String;
+
+    fn from_str(s: &str) -> Result<Self, String> {
+        match s.trim().to_ascii_lowercase().as_str() {
+            "tdcm" => Ok(Self::Tdcm),
+            "ncc" => Ok(Self::Ncc),
+            other => Err(format!(
+                "method `{other}` is unknown: use `tdcm` (the network) or `ncc` (classical)"
+            )),
+        }
     }
 }
 
@@ -102,6 +133,8 @@ pub struct MatchOptions {
     /// Verify every candidate on the image, refine the survivors and score them by similarity.
     /// Off: the network's poses and heatmap values as they come (faster, less accurate).
     pub refine: bool,
+    /// The network, or the classical NCC matcher.
+    pub method: Method,
 }
 
 /// Upper bound on `max_instances`: beyond this a request is almost certainly a mistake.
@@ -136,6 +169,7 @@ impl Default for MatchOptions {
             angle_range: None,
             scale_range: None,
             refine: true,
+            method: Method::Tdcm,
         }
     }
 }

@@ -91,6 +91,14 @@ impl TemplatePoints {
         Self { offsets, weights }
     }
 
+    /// Offsets from the template centre and zero-mean, unit-norm weights, point by point.
+    pub(crate) fn points(&self) -> impl Iterator<Item = ((f32, f32), f32)> + '_ {
+        self.offsets
+            .iter()
+            .copied()
+            .zip(self.weights.iter().copied())
+    }
+
     /// The points that measure a pose's final similarity: the whole template (every pixel up to
     /// 48 a side, a regular subset beyond).
     pub(crate) fn support(template: &GrayImage32) -> Self {
