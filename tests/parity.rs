@@ -7,7 +7,7 @@
 mod common;
 
 use burn::prelude::*;
-use common::{read_f32, reference_dir, tensor};
+use common::{read_f32, reference_dir, tensor, worst};
 use posematch::model::{InferenceNetwork, MatchMaps, available_backends, load_weights};
 use safetensors::SafeTensors;
 
@@ -22,18 +22,7 @@ fn compare(st: &SafeTensors, name: &str, actual: Tensor<4>, absolute_only: bool)
     } else {
         (1e-5 * magnitude).max(1e-4)
     };
-    let (worst_index, worst) = expected
-        .iter()
-        .zip(&actual)
-        .map(|(e, a)| (e - a).abs())
-        .enumerate()
-        .fold((0, 0f32), |best, (i, d)| {
-            if d > best.1 || d.is_nan() {
-                (i, d)
-            } else {
-                best
-            }
-        });
+    let (worst_index, worst) = worst(&expected, &actual);
     println!(
         "{name:24} max|diff| {worst:.3e} (tolerance {tolerance:.1e}, max|value| {magnitude:.1})"
     );

@@ -10,7 +10,7 @@ mod common;
 use std::path::PathBuf;
 
 use burn::prelude::*;
-use common::{read_f32, tensor};
+use common::{read_f32, tensor, worst};
 use posematch::geometry::Pose;
 use posematch::model::{InferenceNetwork, load_weights};
 use posematch::train::LabelMaps;
@@ -20,23 +20,6 @@ const TOLERANCE: f32 = 1e-4;
 
 fn fixtures() -> PathBuf {
     PathBuf::from(env!("CARGO_MANIFEST_DIR")).join("training/fixtures")
-}
-
-/// Largest absolute difference, and where.
-fn worst(expected: &[f32], actual: &[f32]) -> (usize, f32) {
-    assert_eq!(expected.len(), actual.len());
-    expected
-        .iter()
-        .zip(actual)
-        .map(|(e, a)| (e - a).abs())
-        .enumerate()
-        .fold((0, 0f32), |best, (i, d)| {
-            if d > best.1 || d.is_nan() {
-                (i, d)
-            } else {
-                best
-            }
-        })
 }
 
 fn check_maps(network: &InferenceNetwork, st: &SafeTensors, device: &Device, what: &str) {

@@ -57,16 +57,31 @@ impl Engine {
             image.width,
             image.height,
         )?;
-        if options.method == Method::Ncc {
-            let mut answer = self
-                .match_classical(template, image, options, deadline)
-                .await?;
-            for pose in &mut answer.poses {
-                pose.x += offset.0;
-                pose.y += offset.1;
+        let mut answer = match options.method {
+            Method::Tdcm => {
+                self.match_network(template, image, options, deadline)
+                    .await?
             }
-            return Ok(answer);
+            Method::Ncc => {
+                self.match_classical(template, image, options, deadline)
+                    .await?
+            }
+        };
+        for pose in &mut answer.poses {
+            pose.x += offset.0;
+            pose.y += offset.1;
         }
+        Ok(answer)
+    }
+
+    /// The network's path: queued for the batching model thread.
+    async fn match_network(
+        &self,
+        template: Arc<EncodedTemplate>,
+        image: RgbImage32,
+        options: ValidOptions,
+        deadline: Option<Instant>,
+    ) -> Result<MatchAnswer, EngineError> {
         let (reply, answer) = oneshot::channel();
         self.batcher
             .submit(MatchWork {
@@ -87,21 +102,14 @@ impl Engine {
                 BatchError::Match(e) => EngineError::from(e),
                 BatchError::DeadlineExceeded => EngineError::DeadlineExceeded(e.to_string()),
             })?;
-        let mut poses = answer.outcome.poses;
-        for pose in &mut poses {
-            pose.x += offset.0;
-            pose.y += offset.1;
-        }
         Ok(MatchAnswer {
-            poses,
+            poses: answer.outcome.poses,
             timings: answer.outcome.timings,
             queue_ms: answer.queue_ms,
             batch_size: answer.batch_size,
         })
     }
-}
 
-impl Engine {
     /// The classical matcher on a blocking thread, one search at a time; its cost is checked
     /// before it waits.
     async fn match_classical(

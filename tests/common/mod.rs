@@ -133,3 +133,21 @@ pub fn structured_photo_dir() -> tempfile::TempDir {
     }
     dir
 }
+
+/// Largest absolute difference between two equally long tensors, and where (NaN counts as
+/// worst).
+pub fn worst(expected: &[f32], actual: &[f32]) -> (usize, f32) {
+    assert_eq!(expected.len(), actual.len());
+    expected
+        .iter()
+        .zip(actual)
+        .map(|(e, a)| (e - a).abs())
+        .enumerate()
+        .fold((0, 0f32), |best, (i, d)| {
+            if d > best.1 || d.is_nan() {
+                (i, d)
+            } else {
+                best
+            }
+        })
+}
