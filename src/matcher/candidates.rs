@@ -80,7 +80,7 @@ pub fn verify_candidates(
     options: &MatchOptions,
 ) -> Verification {
     let start = Instant::now();
-    let scales = options.scale_range.map_or((1.0, 1.0), |r| (r.min, r.max));
+    let scales = options.scale_range.map(|r| (r.min, r.max));
     let angle_range = options.angle_range;
     let verifier = Verifier::new(template, image, scales, move |angle| {
         angle_range.is_none_or(|r| r.contains_within(angle, ANGLE_MARGIN_DEG))

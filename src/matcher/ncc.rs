@@ -12,7 +12,7 @@
 use rayon::prelude::*;
 
 use crate::geometry::Pose;
-use crate::imaging::GrayImage32;
+use crate::imaging::{GrayImage32, gaussian_blur};
 use crate::refine::{Screened, TemplatePoints, Verifier};
 
 use super::MatchError;
@@ -23,6 +23,13 @@ use super::options::MatchOptions;
 const SCALE_STEP: f32 = 1.25;
 /// Angle step of the coarse grid: this many pixels of arc at the template's rim.
 const ANGLE_STEP_PX: f32 = 1.5;
+
+/// Blur of the coarse level (its pixels), template and image alike: a fine texture (noise,
+/// stripes) keeps some correlation between the grid's angle and scale steps. Measured on the
+/// tuning pairs (lomiri and the training corpus, 36x36, S1.5 and multi-instance): recall in
+/// scenes 0.956 without, 0.975 at 0.5, 0.978 at 0.7, 0.964 at 0.85; S1.5 Succ 95.7, 96.7,
+/// 96.7, 96.7 % (with the verifier holding poses to the scale range).
+const COARSE_SIGMA: f32 = 0.7;
 
 /// Distinct coarse peaks confirmed: this many per wanted instance, plus
 /// [`PEAKS_BEYOND_INSTANCES`].
@@ -124,9 +131,11 @@ pub fn ncc_match(template: &GrayImage32, image: &GrayImage32, options: &MatchOpt
         level_template = level_template.downsample();
         level_image = level_image.downsample();
     }
+    let level_template = gaussian_blur(&level_template, COARSE_SIGMA);
+    let level_image = gaussian_blur(&level_image, COARSE_SIGMA);
     let factor = plan.factor;
     let points = TemplatePoints::new(&level_template, 12);
-    let (lo, hi) = options.scale_range.map_or((1.0, 1.0), |r| (r.min, r.max));
+    let hi = options.scale_range.map_or(1.0, |r| r.max);
     let (scales, angles) = (&plan.scales, &plan.angles);
     // Best score per coarse position, with the pose that gave it.
     let (gw, gh) = plan.grid;
@@ -212,11 +221,16 @@ pub fn ncc_match(template: &GrayImage32, image: &GrayImage32, options: &MatchOpt
             distinct.push(peak);
         }
     }
-    let verifier = Verifier::new(template, image, (lo, hi), |angle| {
-        options
-            .angle_range
-            .is_none_or(|r| r.contains_within(angle, ANGLE_MARGIN_DEG))
-    });
+    let verifier = Verifier::new(
+        template,
+        image,
+        options.scale_range.map(|r| (r.min, r.max)),
+        |angle| {
+            options
+                .angle_range
+                .is_none_or(|r| r.contains_within(angle, ANGLE_MARGIN_DEG))
+        },
+    );
     let poses: Vec<Pose> = distinct
         .into_par_iter()
         .map(|(score, coarse)| {

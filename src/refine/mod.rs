@@ -460,6 +460,56 @@ mod tests {
         }
     }
 
+    /// A part whose texture is horizontal stripes, 1.3x wider than its template: along the
+    /// stripes a narrower template fits as well, so a search started below the caller's scale
+    /// range would stay there (and the answer would be filtered away). The verifier holds it
+    /// to the range, where the part still matches.
+    #[test]
+    fn a_striped_part_is_confirmed_within_the_scale_range() {
+        let stripes = |y: f32| 0.5 + 0.3 * (y * 0.9).sin() + 0.1 * (y * 0.31).sin();
+        let (cx, cy, half_w, half_h) = (80.0f32, 80.0f32, 36.0 * 1.3 / 2.0, 18.0f32);
+        let mut values = Vec::new();
+        for y in 0..160 {
+            for x in 0..160 {
+                let inside = (x as f32 - cx).abs() <= half_w && (y as f32 - cy).abs() <= half_h;
+                values.push(if inside { stripes(y as f32) } else { 0.45 });
+            }
+        }
+        let image = GrayImage32 {
+            width: 160,
+            height: 160,
+            values,
+        };
+        let truth = Pose {
+            x: cx,
+            y: cy,
+            angle_deg: 0.0,
+            scale_x: 1.3,
+            scale_y: 1.0,
+            score: 1.0,
+            network_score: 0.0,
+        };
+        let template = cut_template(&image, &truth);
+        let verifier = verify::Verifier::new(&template, &image, Some((1.0, 1.5)), |_| true);
+        let start = Pose {
+            scale_x: 0.7,
+            ..truth
+        };
+        let confirmed = verifier.confirm(
+            &verify::Screened {
+                pose: start,
+                score: 0.0,
+            },
+            &start,
+        );
+        let pose = confirmed.pose;
+        assert!(
+            (1.0..=1.5).contains(&pose.scale_x) && (1.0..=1.5).contains(&pose.scale_y),
+            "{pose:?}"
+        );
+        assert!(confirmed.similarity > 0.9, "{confirmed:?}");
+    }
+
     #[test]
     fn recovers_a_known_pose_from_a_rough_start() {
         let (image, truth, template) = posed_texture();

@@ -128,17 +128,21 @@ pub struct Verifier<'a> {
     chance: f32,
     /// Scales an answer may have ([`Verifier::plausible`]).
     scale_bounds: (f32, f32),
+    /// The caller's scale range, which a confirmed pose is held to ([`Verifier::confirm`]).
+    required_scales: Option<(f32, f32)>,
 }
 
 impl<'a> Verifier<'a> {
-    /// `scales` is the range of the objects' expected scale relative to the template
-    /// (`(1, 1)` without a scale range); `allowed` says which angles an answer may have.
+    /// `scale_range` is the range of the objects' scale relative to the template that the
+    /// caller asked for (`None`: about 1, not enforced); `allowed` says which angles an answer
+    /// may have.
     pub fn new(
         template: &'a GrayImage32,
         image: &'a GrayImage32,
-        scales: (f32, f32),
+        scale_range: Option<(f32, f32)>,
         allowed: impl Fn(f32) -> bool + Send + Sync + 'a,
     ) -> Self {
+        let scales = scale_range.unwrap_or((1.0, 1.0));
         let expected_scale = (scales.0 * scales.1).sqrt().max(0.05);
         let mut level_template = std::borrow::Cow::Borrowed(template);
         let mut level_image = std::borrow::Cow::Borrowed(image);
@@ -179,6 +183,7 @@ impl<'a> Verifier<'a> {
             support: TemplatePoints::support(template),
             chance: chance_similarity(template),
             scale_bounds: (scales.0 / SCALE_SLACK, scales.1 * SCALE_SLACK),
+            required_scales: scale_range,
         }
     }
 
@@ -258,31 +263,39 @@ impl<'a> Verifier<'a> {
 
     /// Refines a screened candidate at full resolution and measures the similarity there. The
     /// alignment may move the centre by at most a third of the object (otherwise it found a
-    /// neighbour, which has its own candidate); it is kept only if it is more similar.
+    /// neighbour, which has its own candidate); it is kept only if it is more similar. Both
+    /// poses are held to the caller's scale range: where the template fits along a direction
+    /// in which it looks the same (stripes, a plain band), a smaller scale fits as well as
+    /// the object's own and the search drifts below the range; the object is still there, at
+    /// the range's bound.
     pub fn confirm(&self, screened: &Screened, candidate: &Pose) -> Verified {
         let start = Scored {
             pose: screened.pose,
             score: self.sparse.score(self.image, &screened.pose),
         };
-        let fine = fine_search(&self.sparse, self.image, start, &*self.allowed);
-        let fine_similarity = self.similarity(&fine.pose);
-        let aligned = align_from(
-            self.template,
-            &self.support,
-            self.image,
-            &[fine.pose],
-            candidate,
-        );
+        let fine =
+            self.held_to_range(fine_search(&self.sparse, self.image, start, &*self.allowed).pose);
+        let fine_similarity = self.similarity(&fine);
+        let aligned = align_from(self.template, &self.support, self.image, &[fine], candidate);
+        let held = self.held_to_range(aligned.pose);
+        let aligned = if held == aligned.pose {
+            aligned
+        } else {
+            Scored {
+                pose: held,
+                score: self.similarity(&held),
+            }
+        };
         let keep_aligned = aligned.score > fine_similarity
             && self.plausible(&aligned.pose)
             && stayed_near(self.template, candidate, &aligned.pose)
             && (self.allowed)(wrap_angle_deg(aligned.pose.angle_deg));
         let (pose, similarity) = if keep_aligned {
             (aligned.pose, aligned.score)
-        } else if self.plausible(&fine.pose) {
-            (fine.pose, fine_similarity)
+        } else if self.plausible(&fine) {
+            (fine, fine_similarity)
         } else {
-            (fine.pose, -1.0) // no plausible object here
+            (fine, -1.0) // no plausible object here
         };
         Verified {
             pose: Pose {
@@ -291,6 +304,18 @@ impl<'a> Verifier<'a> {
             },
             similarity,
             score: self.score(similarity),
+        }
+    }
+
+    /// `pose` with its scales clamped to the caller's range; unchanged without a range.
+    fn held_to_range(&self, pose: Pose) -> Pose {
+        match self.required_scales {
+            Some((lo, hi)) => Pose {
+                scale_x: pose.scale_x.clamp(lo, hi),
+                scale_y: pose.scale_y.clamp(lo, hi),
+                ..pose
+            },
+            None => pose,
         }
     }
 }
