@@ -211,7 +211,11 @@ fn malformed_input_fails_with_one_clear_line() {
     image::RgbImage::new(200, 200)
         .save(p("big_template.png"))
         .unwrap();
-    std::fs::write(p("huge_header.png"), png_header_claiming(100_000, 100_000)).unwrap();
+    std::fs::write(
+        p("huge_header.png"),
+        common::png_claiming(100_000, 100_000, &[]),
+    )
+    .unwrap();
 
     // A weights file is not needed to reject bad images, but give one when available so the
     // checks run in the order a real call does.
@@ -289,46 +293,6 @@ fn malformed_input_fails_with_one_clear_line() {
     ]);
     assert_eq!(code, 2, "{stderr}");
     assert!(stderr.contains("scale range"), "{stderr}");
-}
-
-/// A well-formed small PNG file whose IHDR announces `w x h` RGB: signature, IHDR, one tiny
-/// IDAT (an empty zlib stream) and IEND. Decoding it for real would need w*h*3 bytes.
-fn png_header_claiming(w: u32, h: u32) -> Vec<u8> {
-    let mut ihdr = Vec::new();
-    ihdr.extend_from_slice(&w.to_be_bytes());
-    ihdr.extend_from_slice(&h.to_be_bytes());
-    ihdr.extend_from_slice(&[8, 2, 0, 0, 0]);
-    let mut png = b"\x89PNG\r\n\x1a\n".to_vec();
-    for (kind, data) in [
-        (&b"IHDR"[..], ihdr),
-        (
-            &b"IDAT"[..],
-            vec![0x78, 0x9c, 0x03, 0x00, 0x00, 0x00, 0x00, 0x01],
-        ),
-        (&b"IEND"[..], Vec::new()),
-    ] {
-        let mut chunk = kind.to_vec();
-        chunk.extend_from_slice(&data);
-        png.extend_from_slice(&(data.len() as u32).to_be_bytes());
-        png.extend_from_slice(&chunk);
-        png.extend_from_slice(&crc32(&chunk).to_be_bytes());
-    }
-    png
-}
-
-fn crc32(data: &[u8]) -> u32 {
-    let mut crc = 0xFFFF_FFFFu32;
-    for &byte in data {
-        crc ^= byte as u32;
-        for _ in 0..8 {
-            crc = if crc & 1 != 0 {
-                (crc >> 1) ^ 0xEDB8_8320
-            } else {
-                crc >> 1
-            };
-        }
-    }
-    !crc
 }
 
 /// `posematch serve` fails with the documented exit status: 2 for an invalid setting, 1 for

@@ -535,7 +535,7 @@ async fn bad_requests_get_a_status_that_says_what_to_fix() {
         (
             "1x1 template",
             register_request("tiny", png(&image::RgbImage::new(1, 1))),
-            "between",
+            "at least 8",
         ),
         (
             "corrupt template",
@@ -1015,4 +1015,186 @@ async fn the_classical_matcher_answers_over_grpc_without_the_network() {
         status.message()
     );
     drop(server);
+}
+
+/// `posematch serve` as a child process (embedded weights, plaintext on 127.0.0.1, a port the
+/// OS picks), so that its own peak memory can be read from `/proc`.
+struct ChildServer {
+    child: std::process::Child,
+    addr: String,
+    _dir: tempfile::TempDir,
+}
+
+impl ChildServer {
+    fn start() -> Self {
+        use std::io::BufRead;
+        let dir = tempfile::tempdir().unwrap();
+        let mut child = std::process::Command::new(env!("CARGO_BIN_EXE_posematch"))
+            .args(["serve", "--listen", "127.0.0.1:0", "--metrics-listen", ""])
+            .arg("--template-dir")
+            .arg(dir.path().join("templates"))
+            .env("POSEMATCH__LOG_FORMAT", "text")
+            .stderr(std::process::Stdio::piped())
+            .spawn()
+            .expect("posematch serve starts");
+        let mut lines = std::io::BufReader::new(child.stderr.take().unwrap()).lines();
+        let mut addr = None;
+        for line in lines.by_ref() {
+            let line = line.expect("server log readable");
+            if let Some(rest) = line.split("grpc_addr=").nth(1) {
+                addr = rest.split_whitespace().next().map(str::to_owned);
+            }
+            if line.contains("serving") {
+                break;
+            }
+        }
+        // Keep draining the log so the server never blocks on a full pipe.
+        std::thread::spawn(move || lines.for_each(drop));
+        let addr = addr.expect("the server logs its address");
+        Self {
+            child,
+            addr,
+            _dir: dir,
+        }
+    }
+
+    /// VmHWM: the most resident memory the server has had, in MiB.
+    fn peak_mib(&self) -> f64 {
+        let status = std::fs::read_to_string(format!("/proc/{}/status", self.child.id())).unwrap();
+        let line = status
+            .lines()
+            .find(|l| l.starts_with("VmHWM:"))
+            .expect("VmHWM in /proc/PID/status");
+        let kib: f64 = line.split_whitespace().nth(1).unwrap().parse().unwrap();
+        kib / 1024.0
+    }
+}
+
+impl Drop for ChildServer {
+    fn drop(&mut self) {
+        let _ = self.child.kill();
+        let _ = self.child.wait();
+    }
+}
+
+/// A 16x16 JPEG whose frame header is patched to announce `w x h` (about 700 bytes).
+fn jpeg_claiming(w: u16, h: u16) -> Vec<u8> {
+    let mut bytes = Vec::new();
+    image::RgbImage::from_pixel(16, 16, image::Rgb([90, 120, 150]))
+        .write_to(
+            &mut std::io::Cursor::new(&mut bytes),
+            image::ImageFormat::Jpeg,
+        )
+        .unwrap();
+    let sof = bytes
+        .windows(2)
+        .position(|m| m == [0xFF, 0xC0])
+        .expect("a baseline JPEG has SOF0");
+    bytes[sof + 5..sof + 7].copy_from_slice(&h.to_be_bytes());
+    bytes[sof + 7..sof + 9].copy_from_slice(&w.to_be_bytes());
+    bytes
+}
+
+/// A real, valid PNG of `side x side` zeros: tens of kilobytes that decode to side² bytes.
+fn png_of_zeros(side: u32) -> Vec<u8> {
+    let mut bytes = Vec::new();
+    image::GrayImage::new(side, side)
+        .write_to(
+            &mut std::io::Cursor::new(&mut bytes),
+            image::ImageFormat::Png,
+        )
+        .unwrap();
+    bytes
+}
+
+/// A valid 36x36 PNG that also carries an ICC profile chunk inflating to 256 MiB.
+fn png_with_huge_icc_profile() -> Vec<u8> {
+    use std::io::Write;
+    let mut profile = b"bomb\0\0".to_vec(); // name, NUL, compression method 0
+    let mut zlib = flate2::write::ZlibEncoder::new(Vec::new(), flate2::Compression::best());
+    let zeros = vec![0u8; 1 << 20];
+    for _ in 0..256 {
+        zlib.write_all(&zeros).unwrap();
+    }
+    profile.extend(zlib.finish().unwrap());
+    let plain = template_png(2);
+    // Signature (8 bytes) and IHDR (25) first; the profile must come before the pixel data.
+    let mut bytes = plain[..33].to_vec();
+    bytes.extend(common::png_chunk(b"iCCP", &profile));
+    bytes.extend_from_slice(&plain[33..]);
+    bytes
+}
+
+/// Decompression bombs and lying headers are refused from the header, as templates and as
+/// search images, with a message that says what to fix, and the server's peak memory stays
+/// within 100 MiB of what one ordinary match costs.
+#[tokio::test(flavor = "multi_thread", worker_threads = 2)]
+async fn image_bombs_are_refused_before_they_cost_memory() {
+    let server = ChildServer::start();
+    let mut client = PoseMatcherClient::connect(format!("http://{}", server.addr))
+        .await
+        .expect("client connects")
+        .max_decoding_message_size(64 << 20)
+        .max_encoding_message_size(64 << 20);
+    client
+        .register_template(register_request("part", template_png(1)))
+        .await
+        .expect("an ordinary template registers");
+    client
+        .r#match(match_request("part", png(&scene(224, 224, 1)), "warm-up"))
+        .await
+        .expect("an ordinary match works");
+    let baseline = server.peak_mib();
+
+    let jpeg = jpeg_claiming(6000, 6000);
+    assert!(jpeg.len() < 1000, "{} bytes", jpeg.len());
+    let big_png = png_of_zeros(6324);
+    let icc_bomb = png_with_huge_icc_profile();
+    assert!(icc_bomb.len() < 1 << 20, "{} bytes", icc_bomb.len());
+    for (case, bytes) in [("6000x6000 JPEG header", jpeg), ("6324x6324 PNG", big_png)] {
+        // Four at once, as an attacker would.
+        let mut attempts = tokio::task::JoinSet::new();
+        for k in 0..4 {
+            let mut client = client.clone();
+            let bytes = bytes.clone();
+            attempts.spawn(async move {
+                client
+                    .register_template(register_request(&format!("bomb-{k}"), bytes))
+                    .await
+            });
+        }
+        for result in attempts.join_all().await {
+            let status = result.expect_err(case);
+            assert_eq!(status.code(), Code::InvalidArgument, "{case}: {status:?}");
+            assert!(
+                status.message().contains("at most 512"),
+                "{case}: {status:?}"
+            );
+        }
+    }
+    let status = client
+        .r#match(match_request(
+            "part",
+            common::png_claiming(100_000, 100_000, &[]),
+            "lying header",
+        ))
+        .await
+        .expect_err("a 10 gigapixel header");
+    assert_eq!(status.code(), Code::InvalidArgument, "{status:?}");
+    assert!(status.message().contains("limit"), "{status:?}");
+    // The oversized profile is dropped within the decoder's small allowance (colour profiles
+    // are never used); the pixels are an ordinary template.
+    client
+        .register_template(register_request("profiled", icc_bomb.clone()))
+        .await
+        .expect("the pixels of a PNG with an oversized profile register");
+    client
+        .r#match(match_request("part", icc_bomb, "profiled image"))
+        .await
+        .expect("an image with an oversized profile is matched");
+    let growth = server.peak_mib() - baseline;
+    println!(
+        "server peak memory: {baseline:.0} MiB after a match, +{growth:.1} MiB after the bombs"
+    );
+    assert!(growth < 100.0, "peak memory grew by {growth:.0} MiB");
 }

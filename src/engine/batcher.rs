@@ -123,6 +123,20 @@ impl Batcher {
         }
     }
 
+    /// Refuses at once when `queue_size` searches already wait, before the caller spends
+    /// memory on decoding a request that [`Batcher::submit`] would refuse anyway.
+    pub fn check_room(&self) -> Result<(), QueueFull> {
+        let waiting = self.waiting.load(Ordering::SeqCst);
+        if waiting >= self.queue_size {
+            self.metrics
+                .dropped
+                .with_label_values(&["queue_full"])
+                .inc();
+            return Err(QueueFull(waiting));
+        }
+        Ok(())
+    }
+
     /// Queues a search, or refuses at once when `queue_size` searches already wait.
     pub fn submit(&self, work: MatchWork) -> Result<(), SubmitError> {
         let before = self.waiting.fetch_add(1, Ordering::SeqCst);

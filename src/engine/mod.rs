@@ -140,6 +140,14 @@ impl Engine {
     pub fn metrics(&self) -> &Metrics {
         &self.metrics
     }
+
+    /// Whether a match request may go on to decode its image: RESOURCE_EXHAUSTED at once, with
+    /// nothing allocated, when the model's queue is already full.
+    pub fn admit_match(&self) -> Result<(), EngineError> {
+        self.batcher
+            .check_room()
+            .map_err(|full| EngineError::ResourceExhausted(full.to_string()))
+    }
 }
 
 /// Runs file and hashing work off the async runtime's threads.

@@ -19,7 +19,8 @@ use std::path::{Path, PathBuf};
 use serde::{Deserialize, Serialize};
 use sha2::{Digest, Sha256};
 
-use crate::imaging::{ImageLimits, RgbImage32, decode_image};
+use crate::imaging::{RgbImage32, decode_image};
+use crate::matcher::TEMPLATE_LIMITS;
 
 /// What we keep about a registered template besides its pixels.
 #[derive(Debug, Clone, PartialEq, Eq, Serialize, Deserialize)]
@@ -143,7 +144,7 @@ impl TemplateStore {
     pub fn load_image(&self, template_id: &str) -> Result<RgbImage32, StoreError> {
         let path = self.image_path(template_id);
         let bytes = fs::read(&path).map_err(io_error(&path))?;
-        decode_image(&bytes, &path.display().to_string(), ImageLimits::default()).map_err(|e| {
+        decode_image(&bytes, &path.display().to_string(), TEMPLATE_LIMITS).map_err(|e| {
             StoreError::Corrupt {
                 path: path.clone(),
                 message: e.to_string(),

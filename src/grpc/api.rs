@@ -16,27 +16,74 @@ use super::convert::{
 };
 use super::proto::{self, pose_matcher_server::PoseMatcher};
 use crate::engine::{Engine, EngineError, Metrics};
-use crate::matcher::MatchOptions;
+use crate::imaging::{ImageLimits, RgbImage32};
+use crate::matcher::{MatchOptions, TEMPLATE_LIMITS, search_limits};
 
 pub struct Api {
     engine: Arc<OnceLock<Arc<Engine>>>,
     metrics: Metrics,
-    max_image_pixels: u64,
+    decoder: Arc<ImageDecoder>,
     /// What a Match request's zero-valued options mean (from the settings).
     match_defaults: MatchOptions,
+}
+
+/// Decodes request images with bounded memory: sizes are checked from the header before any
+/// pixel buffer exists, and at most `max_concurrent_decodes` images are decoded at once (the
+/// rest wait their turn, holding only their encoded bytes).
+pub struct ImageDecoder {
+    max_image_pixels: u64,
+    permits: tokio::sync::Semaphore,
+}
+
+impl ImageDecoder {
+    pub fn new(max_image_pixels: u64, max_concurrent_decodes: usize) -> Self {
+        Self {
+            max_image_pixels,
+            permits: tokio::sync::Semaphore::new(max_concurrent_decodes.max(1)),
+        }
+    }
+
+    /// A search image, within `max_image_pixels`.
+    async fn search_image(&self, image: Option<proto::Image>) -> Result<RgbImage32, EngineError> {
+        self.decode(image, "image", search_limits(self.max_image_pixels))
+            .await
+    }
+
+    /// A template image, within the template side limits.
+    async fn template_image(&self, image: Option<proto::Image>) -> Result<RgbImage32, EngineError> {
+        self.decode(image, "template image", TEMPLATE_LIMITS).await
+    }
+
+    /// Decodes on a blocking thread (a 40 MP PNG takes long enough to stall the runtime) once
+    /// a decode permit is free.
+    async fn decode(
+        &self,
+        image: Option<proto::Image>,
+        what: &'static str,
+        limits: ImageLimits,
+    ) -> Result<RgbImage32, EngineError> {
+        let _permit = self
+            .permits
+            .acquire()
+            .await
+            .map_err(|e| EngineError::Internal(format!("decode permits closed: {e}")))?;
+        tokio::task::spawn_blocking(move || image_from_proto(image, what, limits))
+            .await
+            .map_err(|e| EngineError::Internal(format!("image decoding failed: {e}")))?
+    }
 }
 
 impl Api {
     pub fn new(
         engine: Arc<OnceLock<Arc<Engine>>>,
         metrics: Metrics,
-        max_image_pixels: u64,
+        decoder: ImageDecoder,
         match_defaults: MatchOptions,
     ) -> Self {
         Self {
             engine,
             metrics,
-            max_image_pixels,
+            decoder: Arc::new(decoder),
             match_defaults,
         }
     }
@@ -96,24 +143,13 @@ fn code_name(code: tonic::Code) -> &'static str {
     }
 }
 
-/// Decodes on a blocking thread: a 40 MP PNG takes long enough to stall the runtime.
-async fn decode_off_runtime(
-    image: Option<proto::Image>,
-    what: &'static str,
-    max_pixels: u64,
-) -> Result<crate::imaging::RgbImage32, EngineError> {
-    tokio::task::spawn_blocking(move || image_from_proto(image, what, max_pixels))
-        .await
-        .map_err(|e| EngineError::Internal(format!("image decoding failed: {e}")))?
-}
-
 /// One match, shared by `Match` and `MatchStream`.
 async fn match_request(
     engine: &Engine,
     request: proto::MatchRequest,
     received: Instant,
     deadline: Option<Instant>,
-    max_pixels: u64,
+    decoder: &ImageDecoder,
     defaults: &MatchOptions,
 ) -> Result<proto::MatchResponse, Status> {
     let work = async {
@@ -123,7 +159,9 @@ async fn match_request(
             ));
         }
         let (options, roi) = options_from_proto(request.options, defaults)?;
-        let image = decode_off_runtime(request.image, "image", max_pixels).await?;
+        // A full queue refuses before the image costs any memory.
+        engine.admit_match()?;
+        let image = decoder.search_image(request.image).await?;
         let (width, height) = (image.width, image.height);
         let decode_ms = received.elapsed().as_secs_f64() * 1e3;
         let answer = engine
@@ -185,7 +223,9 @@ impl PoseMatcher for Api {
         let span = tracing::info_span!("register_template", template_id = %request.template_id);
         let result = async {
             let engine = self.engine()?;
-            let image = decode_off_runtime(request.image, "template image", self.max_image_pixels)
+            let image = self
+                .decoder
+                .template_image(request.image)
                 .await
                 .map_err(status_of)?;
             let labels = request.labels.into_iter().collect();
@@ -274,7 +314,7 @@ impl PoseMatcher for Api {
                 request,
                 received,
                 deadline,
-                self.max_image_pixels,
+                &self.decoder,
                 &self.match_defaults,
             )
             .await
@@ -299,11 +339,10 @@ impl PoseMatcher for Api {
         let mut inbound = request.into_inner();
         let (sender, receiver) = mpsc::channel(16);
         let metrics = self.metrics.clone();
-        let max_pixels = self.max_image_pixels;
         let counter = Api {
             engine: self.engine.clone(),
             metrics,
-            max_image_pixels: max_pixels,
+            decoder: self.decoder.clone(),
             match_defaults: self.match_defaults.clone(),
         };
         tokio::spawn(async move {
@@ -342,7 +381,8 @@ impl PoseMatcher for Api {
                     poses = tracing::field::Empty,
                 );
                 let defaults = &counter.match_defaults;
-                let result = match_request(&engine, request, received, None, max_pixels, defaults)
+                let decoder = &counter.decoder;
+                let result = match_request(&engine, request, received, None, decoder, defaults)
                     .instrument(span)
                     .await
                     .map_err(|s| {

@@ -35,11 +35,13 @@ pub fn status_of(error: EngineError) -> Status {
     }
 }
 
-/// Decodes a request's image. `what` names the field in errors ("image", "template image").
+/// Decodes a request's image. `what` names the field in errors ("image", "template image");
+/// `limits` are checked from the header (or the raw buffer's fields) before any pixel buffer
+/// exists.
 pub fn image_from_proto(
     image: Option<proto::Image>,
     what: &str,
-    max_pixels: u64,
+    limits: ImageLimits,
 ) -> Result<RgbImage32, EngineError> {
     let invalid = |m: String| EngineError::InvalidArgument(m);
     let data = image.and_then(|i| i.data).ok_or_else(|| {
@@ -47,22 +49,18 @@ pub fn image_from_proto(
             "{what} is missing: set {what}.encoded (PNG/JPEG/BMP/TIFF/PNM bytes) or {what}.raw"
         ))
     })?;
-    let limits = ImageLimits {
-        max_pixels,
-        min_side: 1,
-    };
     match data {
         proto::image::Data::Encoded(bytes) => {
             decode_image(&bytes, what, limits).map_err(|e: DecodeError| invalid(e.to_string()))
         }
-        proto::image::Data::Raw(raw) => raw_to_rgb(&raw, what, max_pixels),
+        proto::image::Data::Raw(raw) => raw_to_rgb(&raw, what, limits),
     }
 }
 
 fn raw_to_rgb(
     raw: &proto::RawImage,
     what: &str,
-    max_pixels: u64,
+    limits: ImageLimits,
 ) -> Result<RgbImage32, EngineError> {
     use proto::raw_image::Format;
     let invalid = |m: String| Err(EngineError::InvalidArgument(format!("{what}.raw: {m}")));
@@ -70,12 +68,9 @@ fn raw_to_rgb(
     if w == 0 || h == 0 {
         return invalid(format!("{w}x{h} is empty; set width and height"));
     }
-    let pixels = w as u64 * h as u64;
-    if pixels > max_pixels {
-        return invalid(format!(
-            "{w}x{h} = {pixels} pixels is above the limit of {max_pixels}; crop or downscale"
-        ));
-    }
+    limits
+        .check(&format!("{what}.raw"), w, h)
+        .map_err(|e| EngineError::InvalidArgument(e.to_string()))?;
     let format = Format::try_from(raw.format).unwrap_or(Format::Unspecified);
     let bytes_per_pixel = match format {
         Format::Gray8 => 1,
@@ -88,7 +83,7 @@ fn raw_to_rgb(
             ));
         }
     };
-    let expected = pixels * bytes_per_pixel;
+    let expected = w as u64 * h as u64 * bytes_per_pixel;
     if raw.pixels.len() as u64 != expected {
         return invalid(format!(
             "{} bytes of pixels, but {w}x{h} {format:?} needs {expected} (rows packed, no padding)",
@@ -259,6 +254,13 @@ pub fn deadline_of(metadata: &tonic::metadata::MetadataMap, received: Instant) -
 mod tests {
     use super::*;
 
+    /// At most 100 pixels, any side.
+    const TINY: ImageLimits = ImageLimits {
+        max_pixels: 100,
+        min_side: 1,
+        max_side: u32::MAX,
+    };
+
     #[test]
     fn store_failures_are_internal_and_keep_server_paths_to_the_log() {
         let error = EngineError::from(crate::engine::store::StoreError::Io {
@@ -304,21 +306,22 @@ mod tests {
         let rgb = image_from_proto(
             Some(raw(2, 1, Format::Rgb8, vec![10, 20, 30, 40, 50, 60])),
             "image",
-            100,
+            TINY,
         )
         .unwrap();
         let bgr = image_from_proto(
             Some(raw(2, 1, Format::Bgr8, vec![30, 20, 10, 60, 50, 40])),
             "image",
-            100,
+            TINY,
         )
         .unwrap();
         assert_eq!(rgb.pixels, bgr.pixels);
-        let g8 = image_from_proto(Some(raw(1, 1, Format::Gray8, vec![255])), "image", 100).unwrap();
+        let g8 =
+            image_from_proto(Some(raw(1, 1, Format::Gray8, vec![255])), "image", TINY).unwrap();
         let g16 = image_from_proto(
             Some(raw(1, 1, Format::Gray16, vec![255, 255])),
             "image",
-            100,
+            TINY,
         )
         .unwrap();
         assert_eq!(g8.pixels, vec![1.0; 3]);
@@ -329,7 +332,7 @@ mod tests {
     fn bad_raw_images_say_what_is_wrong() {
         use proto::raw_image::Format;
         let err = |image| {
-            image_from_proto(Some(image), "image", 100)
+            image_from_proto(Some(image), "image", TINY)
                 .unwrap_err()
                 .to_string()
         };
@@ -338,7 +341,7 @@ mod tests {
         assert!(err(raw(20, 20, Format::Gray8, vec![0; 400])).contains("limit"));
         assert!(err(raw(0, 2, Format::Gray8, vec![])).contains("empty"));
         assert!(
-            image_from_proto(None, "image", 100)
+            image_from_proto(None, "image", TINY)
                 .unwrap_err()
                 .to_string()
                 .contains("missing")

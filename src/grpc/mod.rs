@@ -112,7 +112,7 @@ impl RunningServer {
         let api = api::Api::new(
             engine.clone(),
             metrics.clone(),
-            settings.max_image_pixels,
+            api::ImageDecoder::new(settings.max_image_pixels, settings.max_concurrent_decodes),
             settings.match_defaults(),
         );
         let pose_matcher = proto::pose_matcher_server::PoseMatcherServer::new(api)

@@ -39,6 +39,9 @@ pub struct Settings {
     pub template_dir: PathBuf,
     /// Largest accepted image, in pixels (checked from the header before decoding).
     pub max_image_pixels: u64,
+    /// Most request images decoded at once; the rest wait, holding only their encoded bytes.
+    /// Each 40 MP decode holds up to about 600 MB.
+    pub max_concurrent_decodes: usize,
     /// Largest accepted gRPC message, in bytes.
     pub max_message_bytes: usize,
     /// `text` or `json`.
@@ -178,6 +181,12 @@ impl Settings {
             return bad(format!(
                 "max_image_pixels = {} is out of range 1024..=400000000",
                 self.max_image_pixels
+            ));
+        }
+        if !(1..=256).contains(&self.max_concurrent_decodes) {
+            return bad(format!(
+                "max_concurrent_decodes = {} is out of range 1..=256",
+                self.max_concurrent_decodes
             ));
         }
         if !(1 << 16..=1 << 30).contains(&self.max_message_bytes) {

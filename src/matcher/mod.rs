@@ -14,7 +14,7 @@ use std::time::Instant;
 use burn::prelude::*;
 
 use crate::geometry::Pose;
-use crate::imaging::GrayImage32;
+use crate::imaging::{GrayImage32, ImageLimits};
 use crate::imaging::{InputConvention, RgbImage32, resize_rgb, to_network_input};
 use crate::model::{InferenceNetwork, TEMPLATE_GRID, Tdcm};
 pub use options::{AngleRange, MatchOptions, Method, ScaleRange, ValidOptions};
@@ -28,6 +28,22 @@ pub const MIN_TEMPLATE_SIDE: u32 = 8;
 pub const MAX_TEMPLATE_SIDE: u32 = 512;
 /// Smallest search image side.
 pub const MIN_IMAGE_SIDE: u32 = 32;
+
+/// What a template image may be, checked from its header before any pixel is decoded.
+pub const TEMPLATE_LIMITS: ImageLimits = ImageLimits {
+    max_pixels: MAX_TEMPLATE_SIDE as u64 * MAX_TEMPLATE_SIDE as u64,
+    min_side: MIN_TEMPLATE_SIDE,
+    max_side: MAX_TEMPLATE_SIDE,
+};
+
+/// What a search image may be: at least [`MIN_IMAGE_SIDE`] a side, at most `max_pixels`.
+pub fn search_limits(max_pixels: u64) -> ImageLimits {
+    ImageLimits {
+        max_pixels,
+        min_side: MIN_IMAGE_SIDE,
+        max_side: u32::MAX,
+    }
+}
 
 #[derive(Debug, thiserror::Error)]
 pub enum MatchError {

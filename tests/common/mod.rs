@@ -151,3 +151,49 @@ pub fn worst(expected: &[f32], actual: &[f32]) -> (usize, f32) {
             }
         })
 }
+
+/// A small PNG file whose IHDR announces `w x h` RGB, with `extra` chunks (kind, data) before
+/// one tiny IDAT (an empty zlib stream) and IEND. Decoding it for real would need w*h*3 bytes.
+pub fn png_claiming(w: u32, h: u32, extra: &[(&[u8; 4], Vec<u8>)]) -> Vec<u8> {
+    let mut ihdr = Vec::new();
+    ihdr.extend_from_slice(&w.to_be_bytes());
+    ihdr.extend_from_slice(&h.to_be_bytes());
+    ihdr.extend_from_slice(&[8, 2, 0, 0, 0]);
+    let mut chunks: Vec<(&[u8], Vec<u8>)> = vec![(&b"IHDR"[..], ihdr)];
+    chunks.extend(extra.iter().map(|(kind, data)| (&kind[..], data.clone())));
+    chunks.push((
+        &b"IDAT"[..],
+        vec![0x78, 0x9c, 0x03, 0x00, 0x00, 0x00, 0x00, 0x01],
+    ));
+    chunks.push((&b"IEND"[..], Vec::new()));
+    let mut png = b"\x89PNG\r\n\x1a\n".to_vec();
+    for (kind, data) in chunks {
+        png.extend(png_chunk(kind, &data));
+    }
+    png
+}
+
+/// One PNG chunk: length, kind, data, CRC.
+pub fn png_chunk(kind: &[u8], data: &[u8]) -> Vec<u8> {
+    let mut chunk = kind.to_vec();
+    chunk.extend_from_slice(data);
+    let mut bytes = (data.len() as u32).to_be_bytes().to_vec();
+    bytes.extend_from_slice(&chunk);
+    bytes.extend_from_slice(&crc32(&chunk).to_be_bytes());
+    bytes
+}
+
+fn crc32(data: &[u8]) -> u32 {
+    let mut crc = 0xFFFF_FFFFu32;
+    for &byte in data {
+        crc ^= byte as u32;
+        for _ in 0..8 {
+            crc = if crc & 1 != 0 {
+                (crc >> 1) ^ 0xEDB8_8320
+            } else {
+                crc >> 1
+            };
+        }
+    }
+    !crc
+}
