@@ -21,6 +21,17 @@ impl GrayImage32 {
         }
     }
 
+    /// The image whose pixel `(x, y)` is `value(x, y)`.
+    pub fn from_fn(width: usize, height: usize, value: impl Fn(usize, usize) -> f32) -> Self {
+        Self {
+            width,
+            height,
+            values: (0..width * height)
+                .map(|i| value(i % width, i / width))
+                .collect(),
+        }
+    }
+
     /// Half the size (2x2 box filter; an odd last row or column is repeated).
     pub fn downsample(&self) -> GrayImage32 {
         let (w, h) = ((self.width / 2).max(1), (self.height / 2).max(1));

@@ -33,7 +33,7 @@ use crate::geometry::{Pose, wrap_angle_deg};
 mod align;
 mod verify;
 
-pub use verify::{Screened, Verified, Verifier};
+pub use verify::{Screened, Verified, Verifier, correlation_length};
 
 use crate::imaging::GrayImage32;
 
@@ -110,21 +110,38 @@ impl TemplatePoints {
         let (s, c) = pose.angle_deg.to_radians().sin_cos();
         let (ax, ay) = (pose.scale_x * c, -pose.scale_x * s);
         let (bx, by) = (pose.scale_y * s, pose.scale_y * c);
+        let sample =
+            |(u, v): (f32, f32)| image.sample(pose.x + ax * u + bx * v, pose.y + ay * u + by * v);
+        // Sums of values relative to the first sample: the variance is a small difference of
+        // large sums otherwise (see [`zncc`]).
+        let reference = self.offsets.first().map_or(0.0, |&p| sample(p));
         let (mut sum, mut sum_sq, mut dot) = (0f32, 0f32, 0f32);
-        for (&(u, v), &w) in self.offsets.iter().zip(&self.weights) {
-            let value = image.sample(pose.x + ax * u + bx * v, pose.y + ay * u + by * v);
+        for (&offset, &w) in self.offsets.iter().zip(&self.weights) {
+            let value = sample(offset) - reference;
             sum += value;
             sum_sq += value * value;
             dot += w * value;
         }
-        let n = self.offsets.len() as f32;
-        let variance = sum_sq - sum * sum / n;
-        if variance <= 1e-9 {
-            return -1.0;
-        }
-        // Σ w·(I − Ī) = Σ w·I because Σ w = 0.
-        dot / variance.sqrt()
+        zncc(dot, sum, sum_sq, self.offsets.len())
     }
+}
+
+/// Grey-level spread (standard deviation, image values in [0, 1]) below which an image patch
+/// counts as flat: half a grey level of an 8-bit image. A flat patch has nothing to match, and
+/// in f32 its variance is lost in the rounding of the sums: before this floor, a plain region
+/// of a photo could score above 1 against any template and crowd out the object.
+pub(crate) const FLAT_PATCH_SPREAD: f32 = 0.5 / 255.0;
+
+/// ZNCC of zero-mean, unit-norm template weights with `n` image samples, from the samples' sum,
+/// sum of squares and weighted sum (`Σ w·(I − Ī) = Σ w·I` because `Σ w = 0`). A flat patch
+/// ([`FLAT_PATCH_SPREAD`]) scores -1, the lowest score; the result is in [-1, 1].
+pub(crate) fn zncc(dot: f32, sum: f32, sum_sq: f32, n: usize) -> f32 {
+    let n = n as f32;
+    let variance = sum_sq - sum * sum / n;
+    if variance <= n * FLAT_PATCH_SPREAD * FLAT_PATCH_SPREAD {
+        return -1.0;
+    }
+    (dot / variance.sqrt()).clamp(-1.0, 1.0)
 }
 
 /// A pose and its score under one set of [`TemplatePoints`].
@@ -395,6 +412,39 @@ pub fn refine_pose(template: &GrayImage32, image: &GrayImage32, initial: &Pose) 
 #[cfg(test)]
 mod tests {
     use super::*;
+
+    #[test]
+    fn a_flat_patch_scores_lowest_however_bright() {
+        // A plain region of a bright photo: grey 0.8 with a ripple far below half a grey level.
+        // In f32 its sums of squares differ by rounding only; before the flat-patch floor this
+        // scored above 1 and out-ranked the object.
+        let image = GrayImage32::from_fn(40, 40, |x, y| {
+            0.8 + 1e-4 * (((y * 40 + x) * 7919 % 13) as f32 / 13.0)
+        });
+        let template = GrayImage32::from_fn(12, 12, |x, y| ((y * 12 + x) * 31 % 17) as f32 / 17.0);
+        let points = TemplatePoints::new(&template, 12);
+        let pose = Pose {
+            x: 20.0,
+            y: 20.0,
+            angle_deg: 17.0,
+            scale_x: 1.1,
+            scale_y: 0.9,
+            score: 0.0,
+            network_score: 0.0,
+        };
+        assert_eq!(points.score(&image, &pose), -1.0);
+        // Any patch with contrast stays within [-1, 1].
+        let textured = GrayImage32 {
+            values: image
+                .values
+                .iter()
+                .enumerate()
+                .map(|(i, v)| v + 0.1 * ((i as f32) * 0.37).sin())
+                .collect(),
+            ..image
+        };
+        assert!((-1.0..=1.0).contains(&points.score(&textured, &pose)));
+    }
 
     /// A smooth random-looking texture.
     fn texture(w: usize, h: usize) -> GrayImage32 {

@@ -81,6 +81,21 @@ const MAX_CHANCE: f32 = 0.8;
 /// `ℓ = √2·σ / rms|∇T|` of a Gaussian random field, estimated from the template's grey-level
 /// spread σ and mean gradient.
 pub fn chance_similarity(template: &GrayImage32) -> f32 {
+    let Some(correlation_length) = correlation_length(template) else {
+        return MAX_CHANCE;
+    };
+    let n = template.values.len() as f32;
+    let independent = n / (std::f32::consts::PI * correlation_length.powi(2));
+    (CHANCE_LOG_HYPOTHESES / independent.max(1.0))
+        .sqrt()
+        .min(MAX_CHANCE)
+}
+
+/// How far apart (pixels) two template pixels must be to vary independently: `ℓ = √2·σ /
+/// rms|∇T|` of a Gaussian random field, from the template's grey-level spread σ and mean
+/// gradient. About a pixel for fine noise, several for smooth content; `None` for a flat
+/// template.
+pub fn correlation_length(template: &GrayImage32) -> Option<f32> {
     let (w, h) = (template.width, template.height);
     let v = &template.values;
     let n = v.len() as f32;
@@ -96,13 +111,9 @@ pub fn chance_similarity(template: &GrayImage32) -> f32 {
     let cells = ((w.saturating_sub(1)) * (h.saturating_sub(1))).max(1) as f32;
     let rms_gradient = (gradient_sq / cells).sqrt();
     if sigma <= 1e-6 || rms_gradient <= 1e-9 {
-        return MAX_CHANCE;
+        return None;
     }
-    let correlation_length = std::f32::consts::SQRT_2 * sigma / rms_gradient;
-    let independent = n / (std::f32::consts::PI * correlation_length.powi(2));
-    (CHANCE_LOG_HYPOTHESES / independent.max(1.0))
-        .sqrt()
-        .min(MAX_CHANCE)
+    Some(std::f32::consts::SQRT_2 * sigma / rms_gradient)
 }
 
 /// Screens and confirms candidates of one template in one image.
