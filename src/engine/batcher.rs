@@ -8,12 +8,19 @@
 //! deadline has passed, runs them as one [`Matcher::match_many`] call and routes each answer
 //! back through its oneshot channel. Template encodings share the thread (they need the model)
 //! and never wait behind the bound: registration must not fail because the line is busy.
+//!
+//! The thread is an actor that cannot die silently (TEI's queue is the model): a panic inside a
+//! batch or an encoding answers that work's callers with an internal error, is logged and
+//! counted, and the thread takes the next work; should the thread end anyway, [`Batcher::alive`]
+//! turns false and the service reports NOT_SERVING. Each search carries its request's tracing
+//! span, so the batch that ran it is linked to the request in traces and logs.
 
+use std::panic::{AssertUnwindSafe, catch_unwind};
 use std::sync::Arc;
 use std::sync::atomic::{AtomicUsize, Ordering};
 use std::time::Instant;
 
-use tokio::sync::{mpsc, oneshot};
+use tokio::sync::{mpsc, oneshot, watch};
 
 use super::metrics::Metrics;
 use crate::imaging::RgbImage32;
@@ -44,6 +51,8 @@ pub struct MatchWork {
     /// Dropped unanswered once this has passed.
     pub deadline: Option<Instant>,
     pub reply: oneshot::Sender<Result<BatchAnswer, BatchError>>,
+    /// The request's span: the batch that runs this search follows from it.
+    pub span: tracing::Span,
 }
 
 /// What the model thread sends back for one search.
@@ -62,13 +71,18 @@ pub enum BatchError {
     Match(#[from] MatchError),
     #[error("the request's deadline passed while it waited for the model")]
     DeadlineExceeded,
+    /// The model panicked on this search's batch (a bug of ours, logged on the server).
+    #[error(
+        "the model failed on this request's batch (an internal error, logged on the server); retrying may succeed"
+    )]
+    ModelFailed,
 }
 
 enum Work {
     Match(MatchWork, Instant),
     Encode(
         RgbImage32,
-        oneshot::Sender<Result<EncodedTemplate, MatchError>>,
+        oneshot::Sender<Result<EncodedTemplate, EncodeError>>,
     ),
 }
 
@@ -89,6 +103,7 @@ pub struct Batcher {
     waiting: Arc<AtomicUsize>,
     queue_size: usize,
     metrics: Metrics,
+    alive: watch::Receiver<bool>,
 }
 
 impl Batcher {
@@ -103,9 +118,12 @@ impl Batcher {
         let waiting = Arc::new(AtomicUsize::new(0));
         let thread_waiting = waiting.clone();
         let thread_metrics = metrics.clone();
+        let (alive_tx, alive) = watch::channel(true);
         std::thread::Builder::new()
             .name("posematch-model".into())
             .spawn(move || {
+                // Whichever way the thread ends, its watchers learn of it.
+                let _alive = AliveWhileHeld(alive_tx);
                 model_loop(
                     model,
                     max_batch_size.max(1),
@@ -120,7 +138,14 @@ impl Batcher {
             waiting,
             queue_size,
             metrics,
+            alive,
         }
+    }
+
+    /// True while the model thread runs; false once it has ended (shutdown, or a failure
+    /// outside any batch), after which no work is answered.
+    pub fn alive(&self) -> watch::Receiver<bool> {
+        self.alive.clone()
     }
 
     /// Refuses at once when `queue_size` searches already wait, before the caller spends
@@ -163,10 +188,7 @@ impl Batcher {
         self.sender
             .send(Work::Encode(image, reply))
             .map_err(|_| EncodeError::Gone(ModelGone))?;
-        answer
-            .await
-            .map_err(|_| EncodeError::Gone(ModelGone))?
-            .map_err(EncodeError::Match)
+        answer.await.map_err(|_| EncodeError::Gone(ModelGone))?
     }
 }
 
@@ -184,6 +206,38 @@ pub enum EncodeError {
     Match(MatchError),
     #[error(transparent)]
     Gone(ModelGone),
+    /// The model panicked while encoding (a bug of ours, logged on the server).
+    #[error(
+        "the model failed to encode the template (an internal error, logged on the server); retrying may succeed"
+    )]
+    ModelFailed,
+}
+
+/// Sends `false` when dropped: held by the model thread for its whole life.
+struct AliveWhileHeld(watch::Sender<bool>);
+
+impl Drop for AliveWhileHeld {
+    fn drop(&mut self) {
+        self.0.send_replace(false);
+    }
+}
+
+/// Runs `work` on the model thread; a panic becomes `None`, logged (what and where) and
+/// counted, so that the thread goes on with the next work.
+fn unless_panicked<T>(what: &str, metrics: &Metrics, work: impl FnOnce() -> T) -> Option<T> {
+    match catch_unwind(AssertUnwindSafe(work)) {
+        Ok(value) => Some(value),
+        Err(payload) => {
+            let message = payload
+                .downcast_ref::<&str>()
+                .map(|s| s.to_string())
+                .or_else(|| payload.downcast_ref::<String>().cloned())
+                .unwrap_or_else(|| "a non-text panic payload".into());
+            metrics.model_panics.inc();
+            tracing::error!(%message, "the model panicked on {what}; answering INTERNAL and going on");
+            None
+        }
+    }
 }
 
 fn model_loop(
@@ -201,7 +255,11 @@ fn model_loop(
         while let Some(work) = next.take() {
             match work {
                 Work::Encode(image, reply) => {
-                    let _ = reply.send(model.encode_template(&image));
+                    let encoded =
+                        unless_panicked("a template", &metrics, || model.encode_template(&image))
+                            .ok_or(EncodeError::ModelFailed)
+                            .and_then(|r| r.map_err(EncodeError::Match));
+                    let _ = reply.send(encoded);
                 }
                 Work::Match(work, queued_at) => {
                     waiting.fetch_sub(1, Ordering::SeqCst);
@@ -241,6 +299,12 @@ fn model_loop(
 
 fn run_batch(model: &impl BatchModel, live: Vec<(MatchWork, Instant)>, metrics: &Metrics) {
     let start = Instant::now();
+    let batch_size = live.len();
+    let span = tracing::info_span!("batch", batch_size);
+    for (work, _) in &live {
+        span.follows_from(&work.span);
+    }
+    let _in_batch = span.enter();
     let jobs: Vec<MatchJob> = live
         .iter()
         .map(|(work, _)| MatchJob {
@@ -249,16 +313,17 @@ fn run_batch(model: &impl BatchModel, live: Vec<(MatchWork, Instant)>, metrics: 
             options: &work.options,
         })
         .collect();
-    let results = model.match_many(&jobs);
+    let results = unless_panicked("a batch", metrics, || model.match_many(&jobs));
     drop(jobs);
-    let batch_size = live.len();
     metrics.batch_size.observe(batch_size as f64);
     metrics.batch_seconds.observe(start.elapsed().as_secs_f64());
-    tracing::debug!(
-        batch_size,
-        ms = start.elapsed().as_secs_f64() * 1e3,
-        "batch done"
-    );
+    tracing::debug!(ms = start.elapsed().as_secs_f64() * 1e3, "batch done");
+    let Some(results) = results else {
+        for (work, _) in live {
+            let _ = work.reply.send(Err(BatchError::ModelFailed));
+        }
+        return;
+    };
     for ((work, queued_at), result) in live.into_iter().zip(results) {
         let queue_ms = start.duration_since(queued_at).as_secs_f64() * 1e3;
         let answer = result
@@ -295,14 +360,22 @@ mod tests {
         release: Mutex<Receiver<()>>,
     }
 
+    /// An image this wide makes the fake model panic (a bug in the model).
+    const PANICS: u32 = 13;
+
     impl BatchModel for GatedModel {
         fn encode_template(&self, image: &RgbImage32) -> Result<EncodedTemplate, MatchError> {
+            assert_ne!(image.width, PANICS, "a bug in the encoder");
             Ok(template(image.width))
         }
 
         fn match_many(&self, jobs: &[MatchJob]) -> Vec<Result<MatchOutcome, MatchError>> {
             self.started.send(jobs.len()).unwrap();
             self.release.lock().unwrap().recv().unwrap();
+            assert!(
+                jobs.iter().all(|job| job.image.width != PANICS),
+                "a bug in the model"
+            );
             jobs.iter()
                 .map(|job| {
                     Ok(MatchOutcome {
@@ -374,6 +447,7 @@ mod tests {
                     options: ValidOptions::default(),
                     deadline,
                     reply,
+                    span: tracing::Span::none(),
                 })
                 .map(|()| answer)
         }
@@ -503,5 +577,55 @@ mod tests {
         assert_eq!(encoded.width, 77);
         answer(running);
         answer(waiting);
+    }
+
+    fn encode(batcher: &Batcher, width: u32) -> Result<EncodedTemplate, EncodeError> {
+        tokio::runtime::Builder::new_current_thread()
+            .build()
+            .unwrap()
+            .block_on(batcher.encode(image(width)))
+    }
+
+    #[test]
+    fn a_panic_answers_its_own_batch_with_an_internal_error_and_the_thread_goes_on() {
+        let h = Harness::new(4, 10);
+        let alive = h.batcher.alive();
+        let doomed = h.submit(PANICS, None).unwrap();
+        assert_eq!(h.next_batch(), 1);
+        h.release_batch();
+        assert!(matches!(
+            doomed.blocking_recv().expect("answered, not dropped"),
+            Err(BatchError::ModelFailed)
+        ));
+        assert!(matches!(
+            encode(&h.batcher, PANICS),
+            Err(EncodeError::ModelFailed)
+        ));
+        assert_eq!(h.metrics.model_panics.get(), 2);
+
+        let next = h.submit(100, None).unwrap();
+        assert_eq!(h.next_batch(), 1);
+        h.release_batch();
+        assert_eq!(answer(next).outcome.poses[0].x, 100.0);
+        assert_eq!(encode(&h.batcher, 77).unwrap().width, 77);
+        assert!(*alive.borrow(), "the model thread still runs");
+    }
+
+    #[test]
+    fn watchers_learn_when_the_model_thread_ends() {
+        let h = Harness::new(1, 1);
+        let mut alive = h.batcher.alive();
+        assert!(*alive.borrow());
+        drop(h); // every handle gone: the thread ends
+        let ended = tokio::runtime::Builder::new_current_thread()
+            .enable_time()
+            .build()
+            .unwrap()
+            .block_on(async {
+                tokio::time::timeout(Duration::from_secs(30), alive.wait_for(|a| !*a))
+                    .await
+                    .map(|r| r.map(|a| *a))
+            });
+        assert!(matches!(ended, Ok(Ok(false))), "{ended:?}");
     }
 }

@@ -90,6 +90,7 @@ impl Engine {
                 options,
                 deadline,
                 reply,
+                span: tracing::Span::current(),
             })
             .map_err(|e| match e {
                 SubmitError::Full(e) => EngineError::ResourceExhausted(e.to_string()),
@@ -101,6 +102,7 @@ impl Engine {
             .map_err(|e| match e {
                 BatchError::Match(e) => EngineError::from(e),
                 BatchError::DeadlineExceeded => EngineError::DeadlineExceeded(e.to_string()),
+                BatchError::ModelFailed => EngineError::Internal(e.to_string()),
             })?;
         Ok(MatchAnswer {
             poses: answer.outcome.poses,

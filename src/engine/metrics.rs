@@ -22,6 +22,8 @@ pub struct Metrics {
     pub queue_depth: IntGauge,
     /// Requests dropped before inference, by reason (`deadline`, `client_gone`, `queue_full`).
     pub dropped: IntCounterVec,
+    /// Model-thread work that panicked (answered INTERNAL; the thread goes on).
+    pub model_panics: IntCounter,
     pub cache_hits: IntCounter,
     pub cache_misses: IntCounter,
     pub cache_evictions: IntCounter,
@@ -82,6 +84,11 @@ impl Metrics {
             &["reason"],
         )
         .expect("valid metric");
+        let model_panics = IntCounter::new(
+            "posematch_model_panics_total",
+            "Batches or template encodings that panicked on the model thread (each request answered INTERNAL)",
+        )
+        .expect("valid metric");
         let cache_hits = IntCounter::new(
             "posematch_template_cache_hits_total",
             "Matches whose template kernel was cached",
@@ -106,6 +113,7 @@ impl Metrics {
             Box::new(batch_seconds.clone()),
             Box::new(queue_depth.clone()),
             Box::new(dropped.clone()),
+            Box::new(model_panics.clone()),
             Box::new(cache_hits.clone()),
             Box::new(cache_misses.clone()),
             Box::new(cache_evictions.clone()),
@@ -121,6 +129,7 @@ impl Metrics {
             batch_seconds,
             queue_depth,
             dropped,
+            model_panics,
             cache_hits,
             cache_misses,
             cache_evictions,

@@ -76,6 +76,7 @@ impl From<EncodeError> for EngineError {
         match e {
             EncodeError::Match(e) => Self::InvalidArgument(format!("template: {e}")),
             EncodeError::Gone(e) => Self::Unavailable(e.to_string()),
+            EncodeError::ModelFailed => Self::Internal(e.to_string()),
         }
     }
 }
@@ -139,6 +140,11 @@ impl Engine {
 
     pub fn metrics(&self) -> &Metrics {
         &self.metrics
+    }
+
+    /// True while the model thread runs (see [`Batcher::alive`]): the service's health.
+    pub fn model_alive(&self) -> tokio::sync::watch::Receiver<bool> {
+        self.batcher.alive()
     }
 
     /// Whether a match request may go on to decode its image: RESOURCE_EXHAUSTED at once, with

@@ -148,6 +148,7 @@ impl RunningServer {
             .and_then(|r| r);
             match built {
                 Ok(built) => {
+                    let mut model_alive = built.model_alive();
                     let _ = engine.set(Arc::new(built));
                     health
                         .set_service_status("", tonic_health::ServingStatus::Serving)
@@ -157,6 +158,16 @@ impl RunningServer {
                         .await;
                     tracing::info!("model loaded; serving");
                     let _ = ready_tx.send(Some(Ok(())));
+                    // A model thread that ended answers nothing more: say so to the probes.
+                    let _ = model_alive.wait_for(|alive| !*alive).await;
+                    tracing::error!("the model thread ended; health reports NOT_SERVING");
+                    health
+                        .set_service_status("", tonic_health::ServingStatus::NotServing)
+                        .await;
+                    health
+                        .set_not_serving::<proto::pose_matcher_server::PoseMatcherServer<api::Api>>(
+                        )
+                        .await;
                 }
                 Err(message) => {
                     tracing::error!(%message, "the model could not be loaded");
