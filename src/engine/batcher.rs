@@ -222,8 +222,8 @@ impl Drop for AliveWhileHeld {
     }
 }
 
-/// Runs `work` on the model thread; a panic becomes `None`, logged (what and where) and
-/// counted, so that the thread goes on with the next work.
+/// Runs `work` on the model thread; a panic becomes `None`, logged (its message; the panic
+/// hook prints where) and counted, so that the thread goes on with the next work.
 fn unless_panicked<T>(what: &str, metrics: &Metrics, work: impl FnOnce() -> T) -> Option<T> {
     match catch_unwind(AssertUnwindSafe(work)) {
         Ok(value) => Some(value),

@@ -41,8 +41,9 @@ const COARSE_POINTS_SIDE: usize = 12;
 /// foliage, noise) decorrelates between grid points, and the grid's angle and scale steps leave
 /// the true pose a pixel off, so its sparse score sinks into the chance maxima of the other
 /// positions; four times the points average that out, at four times the coarse cost for those
-/// templates only. Measured on the tuning pairs (lomiri and the training corpus, S1.5): Succ
-/// 96.5 % sparse everywhere (146 ms), 97.5 % below 1.3 (166 ms), 98.0 % below 1.5 (201 ms).
+/// templates only. Measured on the tuning pairs (lomiri and the training corpus, S1.5; times of
+/// the baseline x86-64 build): Succ 96.5 % sparse everywhere (146 ms), 97.5 % below 1.3
+/// (166 ms), 98.0 % below 1.5 (201 ms).
 const DENSE_BELOW_CORRELATION_LENGTH: f32 = 1.3;
 
 /// The coarse level's template points: every pixel of a fine texture, a sparse grid otherwise

@@ -77,9 +77,8 @@ const MAX_CHANCE: f32 = 0.8;
 /// The similarity an unrelated patch reaches by chance once the pose search has bent it to fit:
 /// `sqrt(2·ln M / N_eff)`, where `N_eff` is the template's number of effectively independent
 /// pixels. A smooth template (sky, a gradient, blur) has few, and any patch correlates with it
-/// well; a detailed one has many. `N_eff = area / (π·ℓ²)` with the correlation length
-/// `ℓ = √2·σ / rms|∇T|` of a Gaussian random field, estimated from the template's grey-level
-/// spread σ and mean gradient.
+/// well; a detailed one has many. `N_eff = area / (π·ℓ²)` with ℓ the template's
+/// [`correlation_length`].
 pub fn chance_similarity(template: &GrayImage32) -> f32 {
     let Some(correlation_length) = correlation_length(template) else {
         return MAX_CHANCE;
