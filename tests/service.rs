@@ -747,6 +747,49 @@ async fn an_expired_deadline_is_answered_and_never_reaches_the_model() {
 }
 
 #[tokio::test(flavor = "multi_thread", worker_threads = 2)]
+async fn a_search_beyond_the_compute_budget_is_refused_at_once() {
+    let dir = tempfile::tempdir().unwrap();
+    let (server, mut client) = start(&settings(dir.path(), &[]), untrained_model()).await;
+    client
+        .register_template(register_request("t", template_png(1)))
+        .await
+        .unwrap();
+    // Scales 0.05..20 on 224x224 with a 36x40 template: 7.7 M network pixels, about 9 s of model
+    // time on two cores, over the default budget of 1.6 M.
+    let mut request = match_request("t", png(&scene(224, 224, 1)), "wide");
+    request.options = Some(proto::MatchOptions {
+        scale_min: 0.05,
+        scale_max: 20.0,
+        ..Default::default()
+    });
+    let started = std::time::Instant::now();
+    let status = client.r#match(request.clone()).await.unwrap_err();
+    let elapsed = started.elapsed();
+    assert_eq!(status.code(), Code::InvalidArgument, "{status:?}");
+    assert!(
+        status.message().contains("scale_min/scale_max") && status.message().contains("roi"),
+        "the message names the options to narrow: {}",
+        status.message()
+    );
+    assert!(elapsed < Duration::from_secs(1), "answered in {elapsed:?}");
+    let metrics = metrics_text(&server).await;
+    assert_eq!(
+        counter(&metrics, "posematch_batch_size_count", ""),
+        0.0,
+        "{metrics}"
+    );
+    // Within the budget the same image is searched.
+    request.options = Some(proto::MatchOptions {
+        scale_min: 0.5,
+        scale_max: 2.0,
+        no_refine: true,
+        ..Default::default()
+    });
+    client.r#match(request).await.unwrap();
+    server.shutdown(Duration::from_secs(30)).await;
+}
+
+#[tokio::test(flavor = "multi_thread", worker_threads = 2)]
 async fn health_turns_serving_once_the_model_is_loaded() {
     use tonic_health::pb::health_check_response::ServingStatus;
     use tonic_health::pb::{HealthCheckRequest, health_client::HealthClient};

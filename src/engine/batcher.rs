@@ -30,7 +30,13 @@ use crate::matcher::{EncodedTemplate, MatchError, MatchJob, MatchOutcome, Matche
 /// tests (which gate it to see exactly how work is batched).
 pub trait BatchModel: Send + 'static {
     fn encode_template(&self, image: &RgbImage32) -> Result<EncodedTemplate, MatchError>;
-    fn match_many(&self, jobs: &[MatchJob]) -> Vec<Result<MatchOutcome, MatchError>>;
+    /// Runs `jobs` as one batch. `still_wanted(i)` tells whether job `i`'s caller still waits;
+    /// a model may skip the rest of an unwanted job's work and answer `None` for it.
+    fn match_many(
+        &self,
+        jobs: &[MatchJob],
+        still_wanted: &dyn Fn(usize) -> bool,
+    ) -> Vec<Option<Result<MatchOutcome, MatchError>>>;
 }
 
 impl BatchModel for Matcher {
@@ -38,8 +44,12 @@ impl BatchModel for Matcher {
         Matcher::encode_template(self, image)
     }
 
-    fn match_many(&self, jobs: &[MatchJob]) -> Vec<Result<MatchOutcome, MatchError>> {
-        Matcher::match_many(self, jobs)
+    fn match_many(
+        &self,
+        jobs: &[MatchJob],
+        still_wanted: &dyn Fn(usize) -> bool,
+    ) -> Vec<Option<Result<MatchOutcome, MatchError>>> {
+        Matcher::match_many_wanted(self, jobs, still_wanted)
     }
 }
 
@@ -313,7 +323,11 @@ fn run_batch(model: &impl BatchModel, live: Vec<(MatchWork, Instant)>, metrics: 
             options: &work.options,
         })
         .collect();
-    let results = unless_panicked("a batch", metrics, || model.match_many(&jobs));
+    // A client that leaves while the network runs spares its job's verification.
+    let still_wanted = |i: usize| !live[i].0.reply.is_closed();
+    let results = unless_panicked("a batch", metrics, || {
+        model.match_many(&jobs, &still_wanted)
+    });
     drop(jobs);
     metrics.batch_size.observe(batch_size as f64);
     metrics.batch_seconds.observe(start.elapsed().as_secs_f64());
@@ -325,6 +339,10 @@ fn run_batch(model: &impl BatchModel, live: Vec<(MatchWork, Instant)>, metrics: 
         return;
     };
     for ((work, queued_at), result) in live.into_iter().zip(results) {
+        let Some(result) = result else {
+            metrics.dropped.with_label_values(&["client_gone"]).inc();
+            continue;
+        };
         let queue_ms = start.duration_since(queued_at).as_secs_f64() * 1e3;
         let answer = result
             .map(|outcome| BatchAnswer {
@@ -369,7 +387,11 @@ mod tests {
             Ok(template(image.width))
         }
 
-        fn match_many(&self, jobs: &[MatchJob]) -> Vec<Result<MatchOutcome, MatchError>> {
+        fn match_many(
+            &self,
+            jobs: &[MatchJob],
+            still_wanted: &dyn Fn(usize) -> bool,
+        ) -> Vec<Option<Result<MatchOutcome, MatchError>>> {
             self.started.send(jobs.len()).unwrap();
             self.release.lock().unwrap().recv().unwrap();
             assert!(
@@ -377,18 +399,21 @@ mod tests {
                 "a bug in the model"
             );
             jobs.iter()
-                .map(|job| {
-                    Ok(MatchOutcome {
-                        poses: vec![Pose {
-                            x: job.image.width as f32,
-                            y: 0.0,
-                            angle_deg: 0.0,
-                            scale_x: 1.0,
-                            scale_y: 1.0,
-                            score: 1.0,
-                            network_score: 1.0,
-                        }],
-                        timings: Default::default(),
+                .enumerate()
+                .map(|(i, job)| {
+                    still_wanted(i).then(|| {
+                        Ok(MatchOutcome {
+                            poses: vec![Pose {
+                                x: job.image.width as f32,
+                                y: 0.0,
+                                angle_deg: 0.0,
+                                scale_x: 1.0,
+                                scale_y: 1.0,
+                                score: 1.0,
+                                network_score: 1.0,
+                            }],
+                            timings: Default::default(),
+                        })
                     })
                 })
                 .collect()
@@ -551,6 +576,20 @@ mod tests {
             Err(BatchError::DeadlineExceeded)
         ));
         assert_eq!((h.dropped("deadline"), h.dropped("client_gone")), (1, 1));
+    }
+
+    #[test]
+    fn a_client_that_leaves_during_its_batch_is_not_answered_and_is_counted() {
+        let h = Harness::new(8, 10);
+        let leaving = h.submit(100, None).unwrap();
+        assert_eq!(h.next_batch(), 1);
+        drop(leaving);
+        h.release_batch();
+        let after = h.submit(101, None).unwrap();
+        assert_eq!(h.next_batch(), 1);
+        h.release_batch();
+        answer(after);
+        assert_eq!(h.dropped("client_gone"), 1);
     }
 
     #[test]

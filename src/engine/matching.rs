@@ -74,7 +74,8 @@ impl Engine {
         Ok(answer)
     }
 
-    /// The network's path: queued for the batching model thread.
+    /// The network's path: its compute budget checked, then queued for the batching model
+    /// thread.
     async fn match_network(
         &self,
         template: Arc<EncodedTemplate>,
@@ -82,6 +83,14 @@ impl Engine {
         options: ValidOptions,
         deadline: Option<Instant>,
     ) -> Result<MatchAnswer, EngineError> {
+        crate::matcher::check_network_budget(
+            template.width,
+            template.height,
+            image.width,
+            image.height,
+            &options,
+            self.max_network_pixels,
+        )?;
         let (reply, answer) = oneshot::channel();
         self.batcher
             .submit(MatchWork {

@@ -20,7 +20,8 @@ pub struct Metrics {
     pub batch_seconds: Histogram,
     /// Match requests waiting for the model.
     pub queue_depth: IntGauge,
-    /// Requests dropped before inference, by reason (`deadline`, `client_gone`, `queue_full`).
+    /// Match requests dropped unanswered, by reason: `queue_full` (refused), `deadline` (expired
+    /// before its batch), `client_gone` (the caller left before or during its batch).
     pub dropped: IntCounterVec,
     /// Model-thread work that panicked (answered INTERNAL; the thread goes on).
     pub model_panics: IntCounter,

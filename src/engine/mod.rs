@@ -38,6 +38,9 @@ pub struct EngineConfig {
     pub cache_size: u64,
     /// Where registered templates are persisted.
     pub template_dir: PathBuf,
+    /// Most network pixels one network search may need (its compute budget; see
+    /// [`crate::matcher::check_network_budget`]).
+    pub max_network_pixels: u64,
 }
 
 /// Why a request failed; each maps to one gRPC status code.
@@ -91,6 +94,8 @@ pub struct Engine {
     batcher: Batcher,
     /// One classical (NCC) search at a time: each keeps the cores busy for about a second.
     classical: tokio::sync::Semaphore,
+    /// Compute budget of one network search, checked before it queues.
+    max_network_pixels: u64,
     metrics: Metrics,
 }
 
@@ -134,6 +139,7 @@ impl Engine {
             kernels,
             batcher,
             classical: tokio::sync::Semaphore::new(1),
+            max_network_pixels: config.max_network_pixels,
             metrics,
         })
     }

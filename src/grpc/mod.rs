@@ -137,6 +137,7 @@ impl RunningServer {
             queue_size: settings.queue_size,
             cache_size: settings.cache_size,
             template_dir: settings.template_dir.clone(),
+            max_network_pixels: settings.max_network_pixels,
         };
         tokio::spawn(async move {
             let built = tokio::task::spawn_blocking(move || {

@@ -44,6 +44,9 @@ pub struct Settings {
     pub max_concurrent_decodes: usize,
     /// Largest accepted gRPC message, in bytes.
     pub max_message_bytes: usize,
+    /// Compute budget of one network search: the most network pixels its scale plan may need
+    /// (about 1.2 µs each on two cores; the default keeps one request under ~2 s of model time).
+    pub max_network_pixels: u64,
     /// `text` or `json`.
     pub log_format: LogFormat,
     /// Seconds to let in-flight requests finish after SIGTERM/Ctrl-C.
@@ -187,6 +190,13 @@ impl Settings {
             return bad(format!(
                 "max_concurrent_decodes = {} is out of range 1..=256",
                 self.max_concurrent_decodes
+            ));
+        }
+        let most = crate::matcher::plan::MAX_NETWORK_PIXELS;
+        if !(10_000..=most).contains(&self.max_network_pixels) {
+            return bad(format!(
+                "max_network_pixels = {} is out of range 10000..={most}",
+                self.max_network_pixels
             ));
         }
         if !(1 << 16..=1 << 30).contains(&self.max_message_bytes) {

@@ -58,7 +58,7 @@ pub enum MatchError {
     )]
     TemplateLargerThanImage { tw: u32, th: u32, iw: u32, ih: u32 },
     #[error(
-        "matching a {tw}x{th} template in a {iw}x{ih} image at scales {lo}..{hi} needs a {pixels}-pixel network input (limit {MAX_NETWORK_PIXELS}); crop the image or narrow the scale range"
+        "matching a {tw}x{th} template in a {iw}x{ih} image at scales {lo}..{hi} needs {pixels} network pixels, over the budget of {budget} per request; narrow the scale range (scale_min/scale_max) or search a smaller region (roi)"
     )]
     TooMuchWork {
         tw: u32,
@@ -68,6 +68,7 @@ pub enum MatchError {
         lo: f32,
         hi: f32,
         pixels: u64,
+        budget: u64,
     },
     #[error(
         "the classical matcher would score {scorings} template placements here (limit {limit}); crop the image (roi), narrow the angle or scale range, or use the network (method tdcm)"
@@ -207,10 +208,26 @@ impl Matcher {
 
     /// Matches several independent jobs, batching same-sized network pieces together.
     pub fn match_many(&self, jobs: &[MatchJob]) -> Vec<Result<MatchOutcome, MatchError>> {
+        self.match_many_wanted(jobs, &|_| true)
+            .into_iter()
+            .map(|answer| answer.expect("every job is wanted"))
+            .collect()
+    }
+
+    /// [`Matcher::match_many`] for callers that may leave: after the network, a job for which
+    /// `still_wanted(index)` is false is not verified or refined and answers `None`.
+    pub fn match_many_wanted(
+        &self,
+        jobs: &[MatchJob],
+        still_wanted: &dyn Fn(usize) -> bool,
+    ) -> Vec<Option<Result<MatchOutcome, MatchError>>> {
         self.propose(jobs)
             .into_iter()
             .zip(jobs)
-            .map(|(proposal, job)| proposal.map(|p| candidates::answer(job, p)))
+            .enumerate()
+            .map(|(index, (proposal, job))| {
+                still_wanted(index).then(|| proposal.map(|p| candidates::answer(job, p)))
+            })
             .collect()
     }
 
@@ -325,6 +342,35 @@ pub fn check_pair_sizes(tw: u32, th: u32, iw: u32, ih: u32) -> Result<(), MatchE
     Ok(())
 }
 
+/// The scale passes of a search, or [`MatchError::TooMuchWork`] when they would need more than
+/// `budget` network pixels (see [`plan::network_pixels`]). The service checks its configured
+/// budget before queueing; the matcher applies the hard limit [`MAX_NETWORK_PIXELS`].
+pub fn check_network_budget(
+    tw: u32,
+    th: u32,
+    iw: u32,
+    ih: u32,
+    options: &ValidOptions,
+    budget: u64,
+) -> Result<Vec<ScalePass>, MatchError> {
+    let (lo, hi) = options.scale_range.map_or((1.0, 1.0), |r| (r.min, r.max));
+    let passes = plan::scale_passes(tw, th, iw, ih, lo, hi);
+    let pixels = plan::network_pixels(&passes);
+    if pixels > budget {
+        return Err(MatchError::TooMuchWork {
+            tw,
+            th,
+            iw,
+            ih,
+            lo,
+            hi,
+            pixels,
+            budget,
+        });
+    }
+    Ok(passes)
+}
+
 /// Checks a job's sizes and cuts it into network pieces.
 fn prepare(
     index: usize,
@@ -334,32 +380,7 @@ fn prepare(
     let (tw, th) = (job.template.width, job.template.height);
     let (iw, ih) = (job.image.width, job.image.height);
     check_pair_sizes(tw, th, iw, ih)?;
-    let (lo, hi) = job
-        .options
-        .scale_range
-        .map_or((1.0, 1.0), |r| (r.min, r.max));
-    let passes: Vec<ScalePass> = plan::split_scale_range(lo, hi)
-        .into_iter()
-        .map(|(a, b)| {
-            let f = plan::scale_factor(TEMPLATE_GRID, tw, th, a, b);
-            plan::scale_pass(iw, ih, f)
-        })
-        .collect();
-    let pixels: u64 = passes
-        .iter()
-        .map(|p| p.width as u64 * p.height as u64)
-        .sum();
-    if pixels > MAX_NETWORK_PIXELS {
-        return Err(MatchError::TooMuchWork {
-            tw,
-            th,
-            iw,
-            ih,
-            lo,
-            hi,
-            pixels,
-        });
-    }
+    let passes = check_network_budget(tw, th, iw, ih, job.options, MAX_NETWORK_PIXELS)?;
     let mut pieces = Vec::new();
     for pass in passes {
         let resized = resize_rgb(job.image, pass.width as u32, pass.height as u32);

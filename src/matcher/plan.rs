@@ -19,6 +19,8 @@
 //! it). GRN normalises over the whole feature map, so tiles see slightly different features than
 //! one full pass would; `tests/matching.rs` measures what that costs.
 
+use crate::model::TEMPLATE_GRID;
+
 /// Largest network input side of a tile (a multiple of 4).
 pub const TILE: usize = 1024;
 /// Overlap on each side of a tile's core.
@@ -27,7 +29,8 @@ pub const TILE_MARGIN: usize = 64;
 /// pass is about 0.6 KB per network pixel, so this bounds it near 700 MB.
 pub const MAX_WHOLE_PIXELS: usize = TILE * TILE;
 /// Refuse a search that would need more network pixels than this (a tiny template on a huge
-/// frame): minutes of CPU that nobody asked for.
+/// frame): minutes of CPU that nobody asked for. The service's `max_network_pixels` budget is
+/// tighter and must not exceed it.
 pub const MAX_NETWORK_PIXELS: u64 = 64_000_000;
 /// Smallest network input side; smaller inputs are padded by edge replication.
 pub const MIN_INPUT_SIDE: usize = 40;
@@ -69,6 +72,24 @@ pub fn split_scale_range(lo: f32, hi: f32) -> Vec<(f32, f32)> {
     (0..passes)
         .map(|k| (lo * step.powi(k as i32), lo * step.powi(k as i32 + 1)))
         .collect()
+}
+
+/// The passes that show a `iw x ih` image to the network for a `tw x th` template whose objects
+/// are expected at scales `lo..hi`.
+pub fn scale_passes(tw: u32, th: u32, iw: u32, ih: u32, lo: f32, hi: f32) -> Vec<ScalePass> {
+    split_scale_range(lo, hi)
+        .into_iter()
+        .map(|(a, b)| scale_pass(iw, ih, scale_factor(TEMPLATE_GRID, tw, th, a, b)))
+        .collect()
+}
+
+/// Network pixels of a set of passes, padding to [`MIN_INPUT_SIDE`] included: the cost of one
+/// search (about 1.2 µs per pixel on two cores, refinement included; README "Compute budget").
+pub fn network_pixels(passes: &[ScalePass]) -> u64 {
+    passes
+        .iter()
+        .map(|p| p.width.max(MIN_INPUT_SIDE) as u64 * p.height.max(MIN_INPUT_SIDE) as u64)
+        .sum()
 }
 
 /// The pass for an image `W x H` at factor `f`.
