@@ -246,6 +246,7 @@ async fn registry_rpcs_follow_the_contract() {
     let got = client
         .get_template(proto::GetTemplateRequest {
             template_id: "part-3".into(),
+            ..Default::default()
         })
         .await
         .unwrap()
@@ -271,6 +272,7 @@ async fn registry_rpcs_follow_the_contract() {
     let gone = client
         .get_template(proto::GetTemplateRequest {
             template_id: "part-3".into(),
+            ..Default::default()
         })
         .await
         .unwrap_err();
@@ -602,6 +604,7 @@ async fn a_restart_keeps_every_acknowledged_template() {
         let got = client
             .get_template(proto::GetTemplateRequest {
                 template_id: info.template_id.clone(),
+                ..Default::default()
             })
             .await
             .unwrap()
@@ -816,6 +819,7 @@ async fn health_turns_serving_once_the_model_is_loaded() {
     let early = PoseMatcherClient::new(channel.clone())
         .get_template(proto::GetTemplateRequest {
             template_id: "x".into(),
+            ..Default::default()
         })
         .await
         .unwrap_err();
@@ -1061,44 +1065,99 @@ async fn the_classical_matcher_answers_over_grpc_without_the_network() {
 }
 
 /// `posematch serve` as a child process (embedded weights, plaintext on 127.0.0.1, a port the
-/// OS picks), so that its own peak memory can be read from `/proc`.
+/// OS picks), so that its own peak memory can be read from `/proc` and it can be killed with
+/// SIGKILL. Its log lines are kept for assertions.
 struct ChildServer {
     child: std::process::Child,
     addr: String,
-    _dir: tempfile::TempDir,
+    log: std::sync::Arc<std::sync::Mutex<Vec<String>>>,
+    _dir: Option<tempfile::TempDir>,
 }
 
 impl ChildServer {
     fn start() -> Self {
-        use std::io::BufRead;
         let dir = tempfile::tempdir().unwrap();
-        let mut child = std::process::Command::new(env!("CARGO_BIN_EXE_posematch"))
+        let mut server = Self::start_in(&dir.path().join("templates"), |_| {});
+        server._dir = Some(dir);
+        server
+    }
+
+    /// A server on `template_dir`; `configure` may add arguments or change the user.
+    fn start_in(template_dir: &Path, configure: impl FnOnce(&mut std::process::Command)) -> Self {
+        use std::io::BufRead;
+        let mut command = std::process::Command::new(env!("CARGO_BIN_EXE_posematch"));
+        command
             .args(["serve", "--listen", "127.0.0.1:0", "--metrics-listen", ""])
             .arg("--template-dir")
-            .arg(dir.path().join("templates"))
+            .arg(template_dir)
             .env("POSEMATCH__LOG_FORMAT", "text")
-            .stderr(std::process::Stdio::piped())
-            .spawn()
-            .expect("posematch serve starts");
+            .env("NO_COLOR", "1")
+            .stderr(std::process::Stdio::piped());
+        configure(&mut command);
+        let mut child = command.spawn().expect("posematch serve starts");
         let mut lines = std::io::BufReader::new(child.stderr.take().unwrap()).lines();
-        let mut addr = None;
+        let log = std::sync::Arc::new(std::sync::Mutex::new(Vec::new()));
+        let (mut addr, mut loaded) = (None, false);
         for line in lines.by_ref() {
             let line = line.expect("server log readable");
             if let Some(rest) = line.split("grpc_addr=").nth(1) {
                 addr = rest.split_whitespace().next().map(str::to_owned);
             }
-            if line.contains("serving") {
+            loaded |= line.contains("model loaded");
+            let failed = line.contains("could not be loaded");
+            log.lock().unwrap().push(line);
+            if (addr.is_some() && loaded) || failed {
                 break;
             }
         }
         // Keep draining the log so the server never blocks on a full pipe.
-        std::thread::spawn(move || lines.for_each(drop));
+        let kept = log.clone();
+        std::thread::spawn(move || {
+            for line in lines.map_while(Result::ok) {
+                kept.lock().unwrap().push(line);
+            }
+        });
         let addr = addr.expect("the server logs its address");
         Self {
             child,
             addr,
-            _dir: dir,
+            log,
+            _dir: None,
         }
+    }
+
+    async fn client(&self) -> PoseMatcherClient<Channel> {
+        PoseMatcherClient::connect(format!("http://{}", self.addr))
+            .await
+            .expect("client connects")
+    }
+
+    /// The health of the whole server, as a probe sees it.
+    async fn health(&self) -> i32 {
+        let channel = Channel::from_shared(format!("http://{}", self.addr))
+            .unwrap()
+            .connect()
+            .await
+            .expect("health client connects");
+        tonic_health::pb::health_client::HealthClient::new(channel)
+            .check(tonic_health::pb::HealthCheckRequest {
+                service: String::new(),
+            })
+            .await
+            .expect("health answers")
+            .into_inner()
+            .status
+    }
+
+    /// Whether a log line contains `text` so far.
+    fn logged(&self, text: &str) -> bool {
+        self.log.lock().unwrap().iter().any(|l| l.contains(text))
+    }
+
+    /// SIGKILL, as an OOM killer or a power cut would: no destructor, no flush.
+    fn kill9(mut self) {
+        let _ = self.child.kill();
+        let _ = self.child.wait();
     }
 
     /// VmHWM: the most resident memory the server has had, in MiB.
@@ -1240,4 +1299,192 @@ async fn image_bombs_are_refused_before_they_cost_memory() {
         "server peak memory: {baseline:.0} MiB after a match, +{growth:.1} MiB after the bombs"
     );
     assert!(growth < 100.0, "peak memory grew by {growth:.0} MiB");
+}
+
+/// The content hash a client computes from `GetTemplate(include_image)`: SHA-256 over width and
+/// height (u32 big-endian) then every 16-bit sample (big-endian), as the proto documents.
+fn audited_content_sha256(info: &proto::TemplateInfo) -> String {
+    use sha2::Digest;
+    let Some(Data::Encoded(png)) = info.image.as_ref().and_then(|i| i.data.clone()) else {
+        panic!("GetTemplate(include_image) returned no encoded image: {info:?}");
+    };
+    let stored = image::load_from_memory_with_format(&png, image::ImageFormat::Png)
+        .expect("the stored image is a PNG")
+        .into_rgb16();
+    let mut hasher = sha2::Sha256::new();
+    hasher.update(stored.width().to_be_bytes());
+    hasher.update(stored.height().to_be_bytes());
+    for sample in stored.as_raw() {
+        hasher.update(sample.to_be_bytes());
+    }
+    hex::encode(hasher.finalize())
+}
+
+async fn get_with_image(client: &mut PoseMatcherClient<Channel>, id: &str) -> proto::TemplateInfo {
+    client
+        .get_template(proto::GetTemplateRequest {
+            template_id: id.into(),
+            include_image: true,
+        })
+        .await
+        .expect("the template is registered")
+        .into_inner()
+}
+
+/// SIGKILL while a template is being replaced, over and over: after every restart the image
+/// GetTemplate returns hashes to the metadata it reports, Match can use the template, and the
+/// template is the last acknowledged image or the one whose replacement was cut short.
+#[tokio::test(flavor = "multi_thread", worker_threads = 2)]
+async fn kill_9_during_replace_never_separates_metadata_from_pixels() {
+    let dir = tempfile::tempdir().unwrap();
+    let templates = dir.path().join("templates");
+    let images = [template_png(1), template_png(2)];
+    let frame = png(&scene(128, 128, 1));
+    let mut hashes: Vec<String> = Vec::new();
+    let (mut disagreements, mut unacknowledged_kept) = (0, 0);
+    let mut acknowledged: Option<String> = None;
+    const ROUNDS: u64 = 50;
+    for round in 0..ROUNDS {
+        let server = ChildServer::start_in(&templates, |_| {});
+        let mut client = server.client().await;
+        if round == 0 {
+            for (k, image) in images.iter().enumerate() {
+                let mut request = register_request("t", image.clone());
+                request.replace = true;
+                let info = client
+                    .register_template(request)
+                    .await
+                    .unwrap()
+                    .into_inner();
+                assert_eq!(info.content_sha256.len(), 64);
+                hashes.push(info.content_sha256);
+                if k == 1 {
+                    acknowledged = hashes.last().cloned();
+                }
+            }
+        }
+        let info = get_with_image(&mut client, "t").await;
+        if audited_content_sha256(&info) != info.content_sha256 {
+            disagreements += 1;
+        }
+        assert!(
+            hashes.contains(&info.content_sha256),
+            "round {round}: {info:?}"
+        );
+        if Some(&info.content_sha256) != acknowledged.as_ref() {
+            unacknowledged_kept += 1;
+        }
+        client
+            .r#match(match_request("t", frame.clone(), "after restart"))
+            .await
+            .unwrap_or_else(|s| panic!("round {round}: Match cannot use the template: {s:?}"));
+        // Replace back and forth until the kill; remember what was acknowledged.
+        let current = hashes
+            .iter()
+            .position(|h| *h == info.content_sha256)
+            .unwrap();
+        let replacing = {
+            let (mut client, images) = (client.clone(), images.clone());
+            tokio::spawn(async move {
+                let mut last_acknowledged = None;
+                for k in current + 1.. {
+                    let mut request = register_request("t", images[k % 2].clone());
+                    request.replace = true;
+                    match client.register_template(request).await {
+                        Ok(reply) => last_acknowledged = Some(reply.into_inner().content_sha256),
+                        Err(_) => break,
+                    }
+                }
+                last_acknowledged
+            })
+        };
+        tokio::time::sleep(Duration::from_millis(5 + (round * 17) % 80)).await;
+        server.kill9();
+        if let Some(hash) = replacing.await.unwrap() {
+            acknowledged = Some(hash);
+        }
+    }
+    println!(
+        "{ROUNDS} rounds of kill -9 during replace: {disagreements} disagreements; {unacknowledged_kept} restarts found the replacement that was cut short committed"
+    );
+    assert_eq!(disagreements, 0);
+}
+
+/// A foreign `notes.json`, a zero-byte metadata file and a stray image in the template
+/// directory are moved aside and counted; the server starts and serves.
+#[tokio::test(flavor = "multi_thread", worker_threads = 2)]
+async fn stray_files_in_the_template_directory_are_set_aside_at_start() {
+    let dir = tempfile::tempdir().unwrap();
+    std::fs::write(dir.path().join("notes.json"), br#"{"owner": "line 4"}"#).unwrap();
+    let zero_byte = format!("{}.json", "ab".repeat(32));
+    std::fs::write(dir.path().join(&zero_byte), b"").unwrap();
+    std::fs::write(dir.path().join("photo.png"), b"not a template").unwrap();
+    let (server, mut client) = start(&settings(dir.path(), &[]), untrained_model()).await;
+    client
+        .register_template(register_request("t", template_png(1)))
+        .await
+        .expect("the server works");
+    let metrics = metrics_text(&server).await;
+    assert_eq!(
+        counter(&metrics, "posematch_store_files_set_aside_total", ""),
+        3.0,
+        "{metrics}"
+    );
+    let mut aside: Vec<String> = std::fs::read_dir(dir.path().join("set-aside"))
+        .unwrap()
+        .map(|e| e.unwrap().file_name().to_string_lossy().into_owned())
+        .collect();
+    aside.sort();
+    assert_eq!(aside, [zero_byte.as_str(), "notes.json", "photo.png"]);
+    let info = get_with_image(&mut client, "t").await;
+    assert_eq!(audited_content_sha256(&info), info.content_sha256);
+    server.shutdown(Duration::from_secs(30)).await;
+}
+
+/// A template directory the server cannot write (a read-only volume) turns health NOT_SERVING
+/// with a log line that says why. As root (CI), the server runs as `nobody` so that file
+/// permissions apply to it.
+#[tokio::test(flavor = "multi_thread", worker_threads = 2)]
+async fn a_read_only_template_directory_reports_not_serving() {
+    use std::os::unix::fs::{MetadataExt, PermissionsExt};
+    use std::os::unix::process::CommandExt;
+    let dir = tempfile::tempdir().unwrap();
+    let templates = dir.path().join("templates");
+    std::fs::create_dir(&templates).unwrap();
+    std::fs::set_permissions(dir.path(), std::fs::Permissions::from_mode(0o755)).unwrap();
+    std::fs::set_permissions(&templates, std::fs::Permissions::from_mode(0o555)).unwrap();
+    let root = std::fs::metadata("/proc/self").unwrap().uid() == 0;
+    let server = ChildServer::start_in(&templates, |command| {
+        if root {
+            command.uid(65534).gid(65534);
+        }
+    });
+    let mut said = false;
+    for _ in 0..200 {
+        said = server.logged("not writable");
+        if said {
+            break;
+        }
+        tokio::time::sleep(Duration::from_millis(50)).await;
+    }
+    assert!(
+        said,
+        "no log line says why: {:?}",
+        server.log.lock().unwrap()
+    );
+    assert_eq!(
+        server.health().await,
+        tonic_health::pb::health_check_response::ServingStatus::NotServing as i32
+    );
+    let status = server
+        .client()
+        .await
+        .register_template(register_request("t", template_png(1)))
+        .await
+        .unwrap_err();
+    assert_eq!(status.code(), Code::Internal, "{status:?}");
+    assert!(
+        !status.message().contains("/tmp"),
+        "a server path leaked: {status:?}"
+    );
 }

@@ -30,6 +30,8 @@ pub struct Metrics {
     pub cache_evictions: IntCounter,
     /// Registered templates.
     pub templates: IntGauge,
+    /// Files in the template directory that were not valid templates, moved aside at start.
+    pub store_files_set_aside: IntCounter,
 }
 
 impl Default for Metrics {
@@ -80,7 +82,7 @@ impl Metrics {
         let dropped = IntCounterVec::new(
             Opts::new(
                 "posematch_dropped_total",
-                "Match requests dropped before inference, by reason",
+                "Match requests dropped unanswered, by reason (queue_full, deadline, client_gone)",
             ),
             &["reason"],
         )
@@ -107,6 +109,11 @@ impl Metrics {
         .expect("valid metric");
         let templates =
             IntGauge::new("posematch_templates", "Registered templates").expect("valid metric");
+        let store_files_set_aside = IntCounter::new(
+            "posematch_store_files_set_aside_total",
+            "Files in the template directory that were not valid templates, moved aside at start",
+        )
+        .expect("valid metric");
         for collector in [
             Box::new(requests.clone()) as Box<dyn prometheus::core::Collector>,
             Box::new(latency_seconds.clone()),
@@ -119,6 +126,7 @@ impl Metrics {
             Box::new(cache_misses.clone()),
             Box::new(cache_evictions.clone()),
             Box::new(templates.clone()),
+            Box::new(store_files_set_aside.clone()),
         ] {
             registry.register(collector).expect("unique metric names");
         }
@@ -135,6 +143,7 @@ impl Metrics {
             cache_misses,
             cache_evictions,
             templates,
+            store_files_set_aside,
         }
     }
 

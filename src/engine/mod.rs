@@ -106,9 +106,13 @@ impl Engine {
         matcher: Matcher,
         metrics: Metrics,
     ) -> Result<Self, EngineError> {
-        let (store, metas) = TemplateStore::open(&config.template_dir)?;
-        metrics.templates.set(metas.len() as i64);
-        let index: TemplateIndex = metas
+        let (store, opened) = TemplateStore::open(&config.template_dir)?;
+        metrics.templates.set(opened.metas.len() as i64);
+        metrics
+            .store_files_set_aside
+            .inc_by(opened.set_aside.len() as u64);
+        let index: TemplateIndex = opened
+            .metas
             .into_iter()
             .map(|m| (m.template_id.clone(), m))
             .collect();
@@ -146,6 +150,13 @@ impl Engine {
 
     pub fn metrics(&self) -> &Metrics {
         &self.metrics
+    }
+
+    /// Whether a registration could be written now (see [`TemplateStore::check_writable`]);
+    /// the service reports NOT_SERVING while it cannot.
+    pub async fn store_writable(&self) -> Result<(), EngineError> {
+        let store = self.store.clone();
+        Ok(blocking(move || store.check_writable()).await??)
     }
 
     /// True while the model thread runs (see [`Batcher::alive`]): the service's health.

@@ -43,9 +43,10 @@ impl Engine {
             template_id.to_owned()
         };
         let _writing = self.writes.lock().await;
-        if let Some(existing) = self.lookup(&template_id) {
+        let previous = self.lookup(&template_id);
+        if let Some(existing) = &previous {
             if existing.content_sha256 == content {
-                return Ok(existing);
+                return Ok(existing.clone());
             }
             if !replace {
                 return Err(EngineError::AlreadyExists(template_id));
@@ -64,7 +65,7 @@ impl Engine {
                 .map_or(0, |d| d.as_millis() as i64),
         };
         let (saved_meta, store) = (meta.clone(), self.store.clone());
-        blocking(move || store.save(&saved_meta, &image)).await??;
+        blocking(move || store.save(&saved_meta, &image, previous.as_ref())).await??;
         let count = {
             let mut index = self.index.write().expect("index lock");
             index.insert(template_id.clone(), meta.clone());
@@ -86,6 +87,20 @@ impl Engine {
     pub fn get(&self, template_id: &str) -> Result<TemplateMeta, EngineError> {
         self.lookup(template_id)
             .ok_or_else(|| EngineError::NotFound(template_id.to_owned()))
+    }
+
+    /// A template's metadata and its stored image file (a 16-bit RGB PNG whose pixels hash to
+    /// the metadata's `content_sha256`), read together under the write lock so a concurrent
+    /// replacement cannot pair one with the other's.
+    pub async fn get_with_image(
+        &self,
+        template_id: &str,
+    ) -> Result<(TemplateMeta, Vec<u8>), EngineError> {
+        let _writing = self.writes.lock().await;
+        let meta = self.get(template_id)?;
+        let (store, read) = (self.store.clone(), meta.clone());
+        let png = blocking(move || store.image_bytes(&read)).await??;
+        Ok((meta, png))
     }
 
     /// One page of templates in ID order; the token is where the next page starts.
@@ -137,11 +152,11 @@ impl Engine {
     /// Removes a template from disk, index and cache. `false` when it was not registered.
     pub async fn delete(&self, template_id: &str) -> Result<bool, EngineError> {
         let _writing = self.writes.lock().await;
-        if self.lookup(template_id).is_none() {
+        let Some(meta) = self.lookup(template_id) else {
             return Ok(false);
-        }
-        let (store, id) = (self.store.clone(), template_id.to_owned());
-        blocking(move || store.remove(&id)).await??;
+        };
+        let store = self.store.clone();
+        blocking(move || store.remove(&meta)).await??;
         let count = {
             let mut index = self.index.write().expect("index lock");
             index.remove(template_id);
@@ -163,8 +178,8 @@ impl Engine {
         }
         self.metrics.cache_misses.inc();
         let meta = self.get(template_id)?;
-        let (store, id) = (self.store.clone(), meta.template_id.clone());
-        let image = blocking(move || store.load_image(&id)).await??;
+        let (store, read) = (self.store.clone(), meta.clone());
+        let image = blocking(move || store.load_image(&read)).await??;
         let encoded = Arc::new(self.batcher.encode(image).await?);
         // A concurrent delete or replace wins: only cache what is still registered as read.
         if self

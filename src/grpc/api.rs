@@ -246,12 +246,26 @@ impl PoseMatcher for Api {
         request: Request<proto::GetTemplateRequest>,
     ) -> Result<Response<proto::TemplateInfo>, Status> {
         let started = Instant::now();
-        let result = self.engine().and_then(|engine| {
-            engine
-                .get(&request.get_ref().template_id)
+        let request = request.into_inner();
+        let result = match self.engine() {
+            Err(status) => Err(status),
+            Ok(engine) if request.include_image => engine
+                .get_with_image(&request.template_id)
+                .await
+                .map(|(meta, png)| {
+                    Response::new(proto::TemplateInfo {
+                        image: Some(proto::Image {
+                            data: Some(proto::image::Data::Encoded(png)),
+                        }),
+                        ..template_info(meta)
+                    })
+                })
+                .map_err(status_of),
+            Ok(engine) => engine
+                .get(&request.template_id)
                 .map(|meta| Response::new(template_info(meta)))
-                .map_err(status_of)
-        });
+                .map_err(status_of),
+        };
         self.record("GetTemplate", started, &result);
         result
     }

@@ -230,6 +230,7 @@ pub fn template_info(meta: TemplateMeta) -> proto::TemplateInfo {
         labels: meta.labels.into_iter().collect(),
         content_sha256: meta.content_sha256,
         created_unix_ms: meta.created_unix_ms,
+        image: None,
     }
 }
 

@@ -149,26 +149,13 @@ impl RunningServer {
             .and_then(|r| r);
             match built {
                 Ok(built) => {
-                    let mut model_alive = built.model_alive();
-                    let _ = engine.set(Arc::new(built));
-                    health
-                        .set_service_status("", tonic_health::ServingStatus::Serving)
-                        .await;
-                    health
-                        .set_serving::<proto::pose_matcher_server::PoseMatcherServer<api::Api>>()
-                        .await;
-                    tracing::info!("model loaded; serving");
-                    let _ = ready_tx.send(Some(Ok(())));
-                    // A model thread that ended answers nothing more: say so to the probes.
-                    let _ = model_alive.wait_for(|alive| !*alive).await;
-                    tracing::error!("the model thread ended; health reports NOT_SERVING");
-                    health
-                        .set_service_status("", tonic_health::ServingStatus::NotServing)
-                        .await;
-                    health
-                        .set_not_serving::<proto::pose_matcher_server::PoseMatcherServer<api::Api>>(
-                        )
-                        .await;
+                    let built = Arc::new(built);
+                    let _ = engine.set(built.clone());
+                    tracing::info!("model loaded");
+                    report_health(built, health, move || {
+                        let _ = ready_tx.send(Some(Ok(())));
+                    })
+                    .await;
                 }
                 Err(message) => {
                     tracing::error!(%message, "the model could not be loaded");
@@ -204,6 +191,66 @@ impl RunningServer {
             Ok(Ok(Err(e))) => tracing::warn!(error = %e, "server ended with an error"),
             Ok(Err(e)) => tracing::warn!(error = %e, "server task failed"),
             Err(_) => tracing::warn!(?grace, "in-flight requests did not finish in time"),
+        }
+    }
+}
+
+/// How often the template directory is probed for writability.
+const STORE_RECHECK: Duration = Duration::from_secs(5);
+
+/// Keeps health true to what the service can do: SERVING while the model thread runs and the
+/// template directory is writable (a read-only volume would fail every registration; probed
+/// every [`STORE_RECHECK`]), NOT_SERVING otherwise, each change logged with its reason. Ends
+/// when the model thread ends (for good). `reported` runs once the first status is set.
+async fn report_health(
+    engine: Arc<Engine>,
+    health: tonic_health::server::HealthReporter,
+    reported: impl FnOnce(),
+) {
+    let mut reported = Some(reported);
+    let mut model_alive = engine.model_alive();
+    let mut last: Option<bool> = None;
+    loop {
+        let alive = *model_alive.borrow_and_update();
+        let writable = engine.store_writable().await;
+        let serving = alive && writable.is_ok();
+        if last != Some(serving) {
+            if serving {
+                tracing::info!("serving");
+                health
+                    .set_service_status("", tonic_health::ServingStatus::Serving)
+                    .await;
+                health
+                    .set_serving::<proto::pose_matcher_server::PoseMatcherServer<api::Api>>()
+                    .await;
+            } else {
+                if !alive {
+                    tracing::error!("the model thread ended; health reports NOT_SERVING");
+                }
+                if let Err(e) = &writable {
+                    tracing::error!(
+                        error = %e,
+                        "the template directory is not writable (check the volume's mount and permissions); health reports NOT_SERVING until it is"
+                    );
+                }
+                health
+                    .set_service_status("", tonic_health::ServingStatus::NotServing)
+                    .await;
+                health
+                    .set_not_serving::<proto::pose_matcher_server::PoseMatcherServer<api::Api>>()
+                    .await;
+            }
+            last = Some(serving);
+        }
+        if let Some(reported) = reported.take() {
+            reported();
+        }
+        if !alive {
+            return;
+        }
+        tokio::select! {
+            _ = model_alive.changed() => {}
+            _ = tokio::time::sleep(STORE_RECHECK) => {}
         }
     }
 }
