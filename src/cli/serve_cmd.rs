@@ -29,6 +29,18 @@ pub struct ServeArgs {
     /// Where registered templates are persisted (default ./data/templates).
     #[arg(long)]
     template_dir: Option<PathBuf>,
+    /// PEM certificate chain: serve TLS only (with --tls-key).
+    #[arg(long)]
+    tls_cert: Option<PathBuf>,
+    /// PEM private key of --tls-cert.
+    #[arg(long)]
+    tls_key: Option<PathBuf>,
+    /// PEM CA certificates: require client certificates signed by one (mutual TLS).
+    #[arg(long)]
+    tls_client_ca: Option<PathBuf>,
+    /// Bearer tokens, one per line: every call except health needs one (re-read on SIGHUP).
+    #[arg(long)]
+    auth_tokens_file: Option<PathBuf>,
 }
 
 pub fn run(args: ServeArgs) -> Result<(), CliError> {
@@ -37,6 +49,10 @@ pub fn run(args: ServeArgs) -> Result<(), CliError> {
         metrics_listen: args.metrics_listen,
         weights: args.weights,
         template_dir: args.template_dir,
+        tls_cert: args.tls_cert,
+        tls_key: args.tls_key,
+        tls_client_ca: args.tls_client_ca,
+        auth_tokens_file: args.auth_tokens_file,
     };
     let settings = Settings::load(args.config.as_deref(), std::env::vars(), &overrides)
         .map_err(|e| CliError::Usage(e.to_string()))?;
@@ -48,9 +64,14 @@ pub fn run(args: ServeArgs) -> Result<(), CliError> {
         .build()
         .map_err(|e| CliError::Runtime(format!("cannot start the async runtime: {e}")))?;
     runtime.block_on(async {
+        // Listen for SIGHUP before anything can send it (its default action ends the process).
+        #[cfg(unix)]
+        let hangups = tokio::signal::unix::signal(tokio::signal::unix::SignalKind::hangup()).ok();
         let mut server = RunningServer::start(&settings, loader)
             .await
             .map_err(|e| CliError::Runtime(e.to_string()))?;
+        #[cfg(unix)]
+        tokio::spawn(reload_tokens_on_sighup(hangups, server.access_tokens()));
         let outcome = tokio::select! {
             ready = server.ready() => match ready {
                 Ok(()) => None,
@@ -103,6 +124,31 @@ fn init_logging(format: LogFormat) {
         LogFormat::Text => builder.try_init(),
         LogFormat::Json => builder.json().try_init(),
     };
+}
+
+/// Re-reads the token file on every SIGHUP; a file that cannot be read leaves the tokens in
+/// force (logged).
+#[cfg(unix)]
+async fn reload_tokens_on_sighup(
+    hangups: Option<tokio::signal::unix::Signal>,
+    tokens: Option<crate::grpc::AccessTokens>,
+) {
+    let Some(mut hangups) = hangups else {
+        tracing::warn!("cannot listen for SIGHUP; the token file is read only at start");
+        return;
+    };
+    while hangups.recv().await.is_some() {
+        let Some(tokens) = &tokens else {
+            tracing::info!("SIGHUP: no auth_tokens_file is configured; nothing to reload");
+            continue;
+        };
+        match tokens.reload() {
+            Ok(count) => tracing::info!(count, "bearer tokens reloaded"),
+            Err(message) => {
+                tracing::error!(%message, "bearer tokens not reloaded; the previous ones stay")
+            }
+        }
+    }
 }
 
 async fn shutdown_signal() {

@@ -110,10 +110,11 @@ impl Api {
             .with_label_values(&[rpc])
             .observe(started.elapsed().as_secs_f64());
         if let Err(status) = result {
+            // A Debug-formatted field: IDs quoted in the message cannot forge log lines.
             tracing::info!(
                 rpc,
                 code = code_name(code),
-                message = status.message(),
+                error = status.message(),
                 "request failed"
             );
         }
@@ -220,7 +221,7 @@ impl PoseMatcher for Api {
     ) -> Result<Response<proto::TemplateInfo>, Status> {
         let started = Instant::now();
         let request = request.into_inner();
-        let span = tracing::info_span!("register_template", template_id = %request.template_id);
+        let span = tracing::info_span!("register_template", template_id = %request.template_id.escape_debug());
         let result = async {
             let engine = self.engine()?;
             let image = self
@@ -318,8 +319,8 @@ impl PoseMatcher for Api {
         let request = request.into_inner();
         let span = tracing::info_span!(
             "match",
-            request_id = %request.request_id,
-            template_id = %request.template_id,
+            request_id = %request.request_id.escape_debug(),
+            template_id = %request.template_id.escape_debug(),
         );
         let result = async {
             let engine = self.engine()?;
@@ -376,12 +377,16 @@ impl PoseMatcher for Api {
                         } else {
                             ""
                         };
-                        let _ = sender
-                            .send(Err(Status::new(
-                                status.code(),
-                                format!("frame {frame}: {}{hint}", status.message()),
-                            )))
-                            .await;
+                        let status = Status::new(
+                            status.code(),
+                            format!("frame {frame}: {}{hint}", status.message()),
+                        );
+                        counter.record(
+                            "MatchStream",
+                            Instant::now(),
+                            &Err::<(), _>(status.clone()),
+                        );
+                        let _ = sender.send(Err(status)).await;
                         break;
                     }
                 };
@@ -389,8 +394,8 @@ impl PoseMatcher for Api {
                 let request_id = request.request_id.clone();
                 let span = tracing::info_span!(
                     "match_stream",
-                    request_id = %request.request_id,
-                    template_id = %request.template_id,
+                    request_id = %request.request_id.escape_debug(),
+                    template_id = %request.template_id.escape_debug(),
                     batch_size = tracing::field::Empty,
                     poses = tracing::field::Empty,
                 );

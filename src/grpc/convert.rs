@@ -27,7 +27,7 @@ pub fn status_of(error: EngineError) -> Status {
         EngineError::ResourceExhausted(_) => Status::resource_exhausted(message),
         EngineError::DeadlineExceeded(_) => Status::deadline_exceeded(message),
         EngineError::Store(_) | EngineError::Internal(_) => {
-            tracing::error!(error = %message, "internal error");
+            tracing::error!(error = %message.escape_debug(), "internal error");
             Status::internal(
                 "internal error in the template store or a server task; the server log has the details",
             )

@@ -7,6 +7,7 @@
 
 mod api;
 pub mod convert;
+pub mod security;
 pub mod settings;
 
 use std::net::SocketAddr;
@@ -19,6 +20,7 @@ use tokio_stream::wrappers::TcpListenerStream;
 
 use crate::engine::{Engine, EngineConfig, Metrics};
 use crate::matcher::Matcher;
+pub use security::AccessTokens;
 pub use settings::{LogFormat, Overrides, Settings};
 
 /// Generated messages and service traits of `proto/posematch/v1/posematch.proto`.
@@ -53,12 +55,25 @@ pub struct RunningServer {
     shutdown: watch::Sender<bool>,
     grpc: tokio::task::JoinHandle<Result<(), tonic::transport::Error>>,
     ready: watch::Receiver<Option<Result<(), String>>>,
+    tokens: Option<AccessTokens>,
 }
 
 impl RunningServer {
     /// Binds the ports, starts serving (NOT_SERVING until the model is loaded) and loads the
     /// model in the background.
     pub async fn start(settings: &Settings, loader: ModelLoader) -> Result<Self, ServeError> {
+        // Security files first: a wrong path fails the start, not the first client.
+        let tls = security::tls_config(
+            &settings.tls_cert,
+            &settings.tls_key,
+            &settings.tls_client_ca,
+        )
+        .map_err(ServeError::Setup)?;
+        let tokens = if settings.auth_tokens_file.as_os_str().is_empty() {
+            None
+        } else {
+            Some(AccessTokens::load(&settings.auth_tokens_file).map_err(ServeError::Setup)?)
+        };
         let listener = TcpListener::bind(&settings.listen)
             .await
             .map_err(|source| ServeError::Bind {
@@ -119,17 +134,30 @@ impl RunningServer {
             .max_decoding_message_size(settings.max_message_bytes)
             .max_encoding_message_size(settings.max_message_bytes);
 
+        let mut builder = tonic::transport::Server::builder();
+        let tls_on = tls.is_some();
+        if let Some(tls) = tls {
+            builder = builder
+                .tls_config(tls)
+                .map_err(|e| ServeError::Setup(format!("TLS (tls_cert, tls_key): {e}")))?;
+        }
+        let reflection = settings.reflection;
+        let router = builder
+            .layer(security::GateLayer {
+                tokens: tokens.clone(),
+                metrics: metrics.clone(),
+            })
+            .add_service(health_service)
+            .add_optional_service(reflection.then_some(reflection_v1))
+            .add_optional_service(reflection.then_some(reflection_v1alpha))
+            .add_service(pose_matcher);
         let mut stop = shutdown_rx.clone();
-        let grpc = tokio::spawn(
-            tonic::transport::Server::builder()
-                .add_service(health_service)
-                .add_service(reflection_v1)
-                .add_service(reflection_v1alpha)
-                .add_service(pose_matcher)
-                .serve_with_incoming_shutdown(TcpListenerStream::new(listener), async move {
-                    let _ = stop.wait_for(|s| *s).await;
-                }),
-        );
+        let grpc = tokio::spawn(router.serve_with_incoming_shutdown(
+            TcpListenerStream::new(listener),
+            async move {
+                let _ = stop.wait_for(|s| *s).await;
+            },
+        ));
 
         let (ready_tx, ready) = watch::channel(None);
         let config = EngineConfig {
@@ -163,14 +191,28 @@ impl RunningServer {
                 }
             }
         });
-        tracing::info!(%grpc_addr, metrics_addr = ?metrics_addr, "listening");
+        tracing::info!(
+            %grpc_addr,
+            metrics_addr = ?metrics_addr,
+            tls = tls_on,
+            client_certificates = !settings.tls_client_ca.as_os_str().is_empty(),
+            bearer_tokens = tokens.is_some(),
+            reflection,
+            "listening"
+        );
         Ok(Self {
             grpc_addr,
             metrics_addr,
             shutdown,
             grpc,
             ready,
+            tokens,
         })
+    }
+
+    /// The bearer tokens in force (`None` when `auth_tokens_file` is not set), for reloading.
+    pub fn access_tokens(&self) -> Option<AccessTokens> {
+        self.tokens.clone()
     }
 
     /// Waits until the model is loaded (or failed to load).

@@ -59,6 +59,16 @@ pub struct Settings {
     pub min_score: Option<f32>,
     pub candidate_threshold: f32,
     pub max_candidates: usize,
+    /// PEM certificate chain and private key: with both, the service speaks TLS only.
+    pub tls_cert: PathBuf,
+    pub tls_key: PathBuf,
+    /// PEM CA certificates: when set, clients must present a certificate signed by one (mTLS).
+    pub tls_client_ca: PathBuf,
+    /// One bearer token per line: when set, every call except health needs
+    /// `authorization: Bearer <token>`. Re-read on SIGHUP.
+    pub auth_tokens_file: PathBuf,
+    /// Serve gRPC reflection (what lets grpcurl work without the proto file).
+    pub reflection: bool,
 }
 
 /// The built-in defaults: `deploy/posematch.toml`, the documented file operators start from,
@@ -72,6 +82,10 @@ pub struct Overrides {
     pub metrics_listen: Option<String>,
     pub weights: Option<PathBuf>,
     pub template_dir: Option<PathBuf>,
+    pub tls_cert: Option<PathBuf>,
+    pub tls_key: Option<PathBuf>,
+    pub tls_client_ca: Option<PathBuf>,
+    pub auth_tokens_file: Option<PathBuf>,
 }
 
 #[derive(Debug, thiserror::Error)]
@@ -122,6 +136,14 @@ impl Settings {
             path_string(&overrides.template_dir),
         )
         .map_err(wrap)?;
+        for (key, value) in [
+            ("tls_cert", &overrides.tls_cert),
+            ("tls_key", &overrides.tls_key),
+            ("tls_client_ca", &overrides.tls_client_ca),
+            ("auth_tokens_file", &overrides.auth_tokens_file),
+        ] {
+            builder = set(builder, key, path_string(value)).map_err(wrap)?;
+        }
         let settings: Settings = builder
             .build()
             .map_err(wrap)?
@@ -198,6 +220,19 @@ impl Settings {
                 "max_network_pixels = {} is out of range 10000..={most}",
                 self.max_network_pixels
             ));
+        }
+        let set = |p: &PathBuf| !p.as_os_str().is_empty();
+        if set(&self.tls_cert) != set(&self.tls_key) {
+            return bad(
+                "tls_cert and tls_key go together: give both (PEM files) for TLS, or neither"
+                    .into(),
+            );
+        }
+        if set(&self.tls_client_ca) && !set(&self.tls_cert) {
+            return bad(
+                "tls_client_ca verifies client certificates and needs TLS: set tls_cert and tls_key too"
+                    .into(),
+            );
         }
         if !(1 << 16..=1 << 30).contains(&self.max_message_bytes) {
             return bad(format!(
