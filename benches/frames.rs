@@ -1,0 +1,189 @@
+//! Large frames and small templates (issue 13): ms, recall and precision per case, with 1 and 2
+//! threads, for the embedded default weights and, when `../shared/reference` is present, the
+//! authors' checkpoint; then the classical matcher on the same large frame.
+//!
+//! Cases, all generated with exact truth (`posematch::synth::parts_frame`, procedural parts on a
+//! procedural background, so no photo folder is needed):
+//! - `frame2048`: 2048x2048, 144 parts of 28x52 at any angle, scale 1 (the paper's industrial
+//!   case), `max_instances` 200, otherwise CLI defaults;
+//! - `pair224`: 224x224 with one 36x36 part;
+//! - `tiny12`: 224x224 with one 12x12 part.
+//!
+//! A detection counts when its centre is within 30 % of the part's short side of a true centre
+//! and its angle within 15° (one detection per truth). `cargo bench --bench frames`;
+//! `POSEMATCH_BENCH_FRAMES` sets frames per case (default 2).
+
+use std::path::PathBuf;
+use std::time::Instant;
+
+/// The same allocator as the `posematch` binary, so the figures match what users get.
+#[global_allocator]
+static ALLOCATOR: mimalloc::MiMalloc = mimalloc::MiMalloc;
+
+use posematch::geometry::{Pose, angle_distance_deg};
+use posematch::imaging::{GrayImage32, InputConvention, RgbImage32};
+use posematch::matcher::{MatchOptions, Matcher, ncc};
+use posematch::model::{WeightsSource, load_weights, select_device};
+use posematch::synth::{parts_frame, procedural_part};
+
+struct Case {
+    name: &'static str,
+    part: RgbImage32,
+    side: u32,
+    grid: u32,
+    max_instances: usize,
+}
+
+fn cases() -> Vec<Case> {
+    vec![
+        Case {
+            name: "frame2048",
+            part: procedural_part(28, 52),
+            side: 2048,
+            grid: 12,
+            max_instances: 200,
+        },
+        Case {
+            name: "pair224",
+            part: procedural_part(36, 36),
+            side: 224,
+            grid: 1,
+            max_instances: 1,
+        },
+        Case {
+            name: "tiny12",
+            part: procedural_part(12, 12),
+            side: 224,
+            grid: 1,
+            max_instances: 1,
+        },
+    ]
+}
+
+/// (true positives, detections, truths), one detection per truth, best score first.
+fn count(poses: &[Pose], truth: &[Pose], part: &RgbImage32) -> (usize, usize, usize) {
+    let radius = 0.3 * part.width.min(part.height) as f32;
+    let mut taken = vec![false; truth.len()];
+    let mut hits = 0;
+    for pose in poses {
+        let found = truth.iter().enumerate().position(|(i, t)| {
+            !taken[i]
+                && (pose.x - t.x).hypot(pose.y - t.y) <= radius
+                && angle_distance_deg(pose.angle_deg, t.angle_deg) <= 15.0
+        });
+        if let Some(i) = found {
+            taken[i] = true;
+            hits += 1;
+        }
+    }
+    (hits, poses.len(), truth.len())
+}
+
+fn peak_rss_mib() -> f64 {
+    std::fs::read_to_string("/proc/self/status")
+        .ok()
+        .and_then(|s| {
+            s.lines()
+                .find(|l| l.starts_with("VmHWM:"))
+                .and_then(|l| l.split_whitespace().nth(1)?.parse::<f64>().ok())
+        })
+        .map_or(f64::NAN, |kib| kib / 1024.0)
+}
+
+fn main() {
+    // `cargo bench` passes `--bench`; a filter argument selects cases by name.
+    let filter: Option<String> = std::env::args().skip(1).find(|a| !a.starts_with("--"));
+    let frames: u64 = std::env::var("POSEMATCH_BENCH_FRAMES")
+        .ok()
+        .and_then(|v| v.parse().ok())
+        .unwrap_or(2);
+    let device = select_device().expect("BURN_DEVICE names a compiled backend");
+    let mut models = vec![("default", WeightsSource::Embedded.load(&device).unwrap())];
+    let official =
+        PathBuf::from(env!("CARGO_MANIFEST_DIR")).join("../shared/reference/tdcm-official.pth");
+    if let Ok(model) = load_weights(&official, &device) {
+        models.push(("official", model));
+    }
+    // `classical` alone runs only the classical matcher on the large frame.
+    let classical_only = filter.as_deref() == Some("classical");
+    if classical_only {
+        models.clear();
+    }
+    let cases: Vec<Case> = cases()
+        .into_iter()
+        .filter(|c| classical_only || filter.as_ref().is_none_or(|f| c.name.contains(f.as_str())))
+        .collect();
+    println!("| weights | case | threads | ms/frame (median) | recall | precision |");
+    println!("| --- | --- | --- | --- | --- | --- |");
+    for (name, model) in models {
+        let matcher = Matcher::new(model, device.clone(), InputConvention::ImagenetRgb);
+        for case in &cases {
+            let template = matcher.encode_template(&case.part).unwrap();
+            let options = MatchOptions {
+                max_instances: case.max_instances,
+                ..MatchOptions::default()
+            }
+            .validate()
+            .unwrap();
+            let scenes: Vec<(RgbImage32, Vec<Pose>)> = (0..frames)
+                .map(|seed| parts_frame(&case.part, case.side, case.grid, case.grid, seed))
+                .collect();
+            // One untimed search first: allocations and caches warm, as in a running service.
+            matcher
+                .match_one(&template, &scenes[0].0, &options)
+                .unwrap();
+            for threads in [1, 2] {
+                let pool = rayon::ThreadPoolBuilder::new()
+                    .num_threads(threads)
+                    .build()
+                    .unwrap();
+                let (mut ms, mut totals) = (Vec::new(), (0, 0, 0));
+                for (frame, truth) in &scenes {
+                    let start = Instant::now();
+                    let outcome = pool
+                        .install(|| matcher.match_one(&template, frame, &options))
+                        .unwrap();
+                    ms.push(start.elapsed().as_secs_f64() * 1e3);
+                    let (h, d, t) = count(&outcome.poses, truth, &case.part);
+                    totals = (totals.0 + h, totals.1 + d, totals.2 + t);
+                }
+                ms.sort_by(f64::total_cmp);
+                println!(
+                    "| {name} | {} | {threads} | {:.1} | {:.3} | {:.3} |",
+                    case.name,
+                    ms[ms.len() / 2],
+                    totals.0 as f64 / totals.2.max(1) as f64,
+                    totals.0 as f64 / totals.1.max(1) as f64,
+                );
+            }
+        }
+    }
+    // The classical matcher on the first large frame, two threads.
+    if let Some(case) = cases.iter().find(|c| c.name == "frame2048") {
+        let (frame, truth) = parts_frame(&case.part, case.side, case.grid, case.grid, 0);
+        let options = MatchOptions {
+            max_instances: case.max_instances,
+            ..MatchOptions::default()
+        };
+        let (tw, th) = (case.part.width, case.part.height);
+        // The service and the CLI refuse this much classical work (about 2 s is their limit);
+        // the benchmark runs it anyway, to compare.
+        if let Err(e) = ncc::check_work(tw, th, frame.width, frame.height, &options) {
+            println!("classical (ncc) on frame2048 would be refused by the service: {e}");
+        }
+        let start = Instant::now();
+        let poses = ncc::ncc_match(
+            &GrayImage32::from_rgb(&case.part),
+            &GrayImage32::from_rgb(&frame),
+            &options,
+        );
+        let ms = start.elapsed().as_secs_f64() * 1e3;
+        let (h, d, t) = count(&poses, &truth, &case.part);
+        println!(
+            "classical (ncc) on frame2048, 2 threads: {ms:.1} ms, recall {:.3}, precision {:.3}",
+            h as f64 / t.max(1) as f64,
+            h as f64 / d.max(1) as f64
+        );
+    }
+    println!("peak memory of this process: {:.0} MiB", peak_rss_mib());
+}
