@@ -68,6 +68,7 @@ def main():
     a.add_argument("--device", default="cuda" if torch.cuda.is_available() else "cpu")
     a.add_argument("--no-bf16", action="store_true")
     a.add_argument("--compile", action="store_true")
+    a.add_argument("--choose", help="write the fastest 'batch size' pair (pairs/s) to this file")
     args = a.parse_args()
     device = torch.device(args.device)
     if device.type == "cuda":
@@ -80,11 +81,17 @@ def main():
     bf16 = device.type == "cuda" and not args.no_bf16
     print(f"{len(photos)} photos; bf16 {bf16}; compile {args.compile}")
     print("batch  size  pairs/s  data share  peak GiB")
+    rates = []
     for size in (int(s) for s in args.sizes.split(",")):
         for batch in (int(b) for b in args.batches.split(",")):
             t = step_rate(bank, batch, size, device, bf16, args.compile)
             print(f"{batch:5}  {size:4}  {t['pairs_per_s']:7.0f}  {100 * t['data_share']:9.0f} %"
                   f"  {t.get('peak_gib', 0):8.1f}", flush=True)
+            rates.append((t["pairs_per_s"], batch, size))
+    if args.choose:
+        rate, batch, size = max(rates)
+        Path(args.choose).write_text(f"{batch} {size} {rate:.0f}\n")
+        print(f"fastest: batch {batch}, search size {size}, {rate:.0f} pairs/s -> {args.choose}")
 
 
 if __name__ == "__main__":

@@ -91,6 +91,8 @@ def parse_args(argv=None):
     a.add_argument("--device", default="cuda" if torch.cuda.is_available() else "cpu")
     a.add_argument("--no-bf16", action="store_true", help="float32 throughout (default bf16 autocast on CUDA)")
     a.add_argument("--compile", action="store_true", help="torch.compile the model")
+    a.add_argument("--save-every", type=float, default=2.0,
+                   help="minutes between checkpoints (a run killed mid-way loses at most this much)")
     a.add_argument("--log-every", type=int, default=100)
     a.add_argument("--validate-every", type=int, default=1000)
     a.add_argument("--validation-pairs", type=int, default=256)
@@ -197,6 +199,7 @@ def train(args):
     window_start, window_pairs = time.monotonic(), 0
     window_loss, window_steps = 0.0, 0
     deadline = started + args.minutes * 60
+    next_save = time.monotonic() + args.save_every * 60
     fixed = None
     while step < args.steps and time.monotonic() < deadline:
         lr = P.learning_rate(step, args.steps, args.lr, args.warmup)
@@ -240,6 +243,9 @@ def train(args):
             # loss: mean over the steps since the last line; the terms: this step's.
             say(f"step {step}/{args.steps} loss {mean_loss:.4f} ({parts}) lr {lr:.2e} "
                 f"{rate:.0f} pairs/s, {pairs_seen} pairs, {(now - started) / 60:.1f} min")
+        if time.monotonic() >= next_save:
+            save()
+            next_save = time.monotonic() + args.save_every * 60
         if step % args.validate_every == 0:
             say(f"step {step}: held-out peak within 3 px: {100 * check():.1f} % "
                 f"({held.templates.shape[0]} pairs)")
