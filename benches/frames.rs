@@ -11,7 +11,9 @@
 //!
 //! A detection counts when its centre is within 30 % of the part's short side of a true centre
 //! and its angle within 15° (one detection per truth). `cargo bench --bench frames`;
-//! `POSEMATCH_BENCH_FRAMES` sets frames per case (default 2).
+//! `POSEMATCH_BENCH_FRAMES` sets frames per case (default 2), `POSEMATCH_BENCH_THREADS` the
+//! thread counts (default `1,2`), `POSEMATCH_BENCH_GRID_SCALES` the objects' sizes on the
+//! network grid to compare (default `1`; see `plan::scale_passes_at`).
 
 use std::path::PathBuf;
 use std::time::Instant;
@@ -97,6 +99,18 @@ fn main() {
         .ok()
         .and_then(|v| v.parse().ok())
         .unwrap_or(2);
+    let list = |name: &str, default: &str| -> Vec<f64> {
+        std::env::var(name)
+            .unwrap_or_else(|_| default.into())
+            .split(',')
+            .filter_map(|v| v.trim().parse().ok())
+            .collect()
+    };
+    let thread_counts: Vec<usize> = list("POSEMATCH_BENCH_THREADS", "1,2")
+        .into_iter()
+        .map(|t| t.max(1.0) as usize)
+        .collect();
+    let grid_scales = list("POSEMATCH_BENCH_GRID_SCALES", "1");
     let device = select_device().expect("BURN_DEVICE names a compiled backend");
     let mut models = vec![("default", WeightsSource::Embedded.load(&device).unwrap())];
     let official =
@@ -113,11 +127,15 @@ fn main() {
         .into_iter()
         .filter(|c| classical_only || filter.as_ref().is_none_or(|f| c.name.contains(f.as_str())))
         .collect();
-    println!("| weights | case | threads | ms/frame (median) | recall | precision |");
-    println!("| --- | --- | --- | --- | --- | --- |");
+    println!("| weights | case | grid scale | threads | ms/frame (median) | recall | precision |");
+    println!("| --- | --- | --- | --- | --- | --- | --- |");
     for (name, model) in models {
-        let matcher = Matcher::new(model, device.clone(), InputConvention::ImagenetRgb);
-        for case in &cases {
+        let mut matcher = Matcher::new(model, device.clone(), InputConvention::ImagenetRgb);
+        for (case, &grid_scale) in cases
+            .iter()
+            .flat_map(|c| grid_scales.iter().map(move |g| (c, g)))
+        {
+            matcher.set_grid_scale(grid_scale as f32);
             let template = matcher.encode_template(&case.part).unwrap();
             let options = MatchOptions {
                 max_instances: case.max_instances,
@@ -132,7 +150,7 @@ fn main() {
             matcher
                 .match_one(&template, &scenes[0].0, &options)
                 .unwrap();
-            for threads in [1, 2] {
+            for &threads in &thread_counts {
                 let pool = rayon::ThreadPoolBuilder::new()
                     .num_threads(threads)
                     .build()
@@ -149,7 +167,7 @@ fn main() {
                 }
                 ms.sort_by(f64::total_cmp);
                 println!(
-                    "| {name} | {} | {threads} | {:.1} | {:.3} | {:.3} |",
+                    "| {name} | {} | {grid_scale} | {threads} | {:.1} | {:.3} | {:.3} |",
                     case.name,
                     ms[ms.len() / 2],
                     totals.0 as f64 / totals.2.max(1) as f64,

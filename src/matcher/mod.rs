@@ -140,6 +140,9 @@ pub struct Matcher {
     convention: InputConvention,
     /// Network inputs up to this many pixels run whole; larger ones are tiled.
     max_whole_pixels: usize,
+    /// Objects' size on the network grid relative to the template grid (see
+    /// [`plan::scale_passes_at`]); 1 everywhere but in measurements.
+    grid_scale: f32,
 }
 
 /// A network-input piece: one tile of one pass of one job.
@@ -158,7 +161,18 @@ impl Matcher {
             device,
             convention,
             max_whole_pixels: plan::MAX_WHOLE_PIXELS,
+            grid_scale: 1.0,
         }
+    }
+
+    /// Shows objects at `grid_scale` times the template grid (a measurement knob for the scale
+    /// plan of large frames; the service and CLI keep 1). Clamped to 0.25..=2.
+    pub fn set_grid_scale(&mut self, grid_scale: f32) {
+        self.grid_scale = if grid_scale.is_finite() {
+            grid_scale.clamp(0.25, 2.0)
+        } else {
+            1.0
+        };
     }
 
     /// Inputs above `pixels` network pixels run as overlapping tiles (bounded memory; see
@@ -238,7 +252,7 @@ impl Matcher {
         let mut results: Vec<Result<Proposal, MatchError>> = Vec::with_capacity(jobs.len());
         let mut pieces = Vec::new();
         for (index, job) in jobs.iter().enumerate() {
-            match prepare(index, job, self.max_whole_pixels) {
+            match prepare(index, job, self.max_whole_pixels, self.grid_scale) {
                 Ok(job_pieces) => {
                     pieces.extend(job_pieces);
                     results.push(Ok(Proposal::default()));
@@ -376,11 +390,19 @@ fn prepare(
     index: usize,
     job: &MatchJob,
     max_whole_pixels: usize,
+    grid_scale: f32,
 ) -> Result<Vec<Piece>, MatchError> {
     let (tw, th) = (job.template.width, job.template.height);
     let (iw, ih) = (job.image.width, job.image.height);
     check_pair_sizes(tw, th, iw, ih)?;
-    let passes = check_network_budget(tw, th, iw, ih, job.options, MAX_NETWORK_PIXELS)?;
+    let mut passes = check_network_budget(tw, th, iw, ih, job.options, MAX_NETWORK_PIXELS)?;
+    if grid_scale != 1.0 {
+        let (lo, hi) = job
+            .options
+            .scale_range
+            .map_or((1.0, 1.0), |r| (r.min, r.max));
+        passes = plan::scale_passes_at(tw, th, iw, ih, lo, hi, grid_scale);
+    }
     let mut pieces = Vec::new();
     for pass in passes {
         let resized = resize_rgb(job.image, pass.width as u32, pass.height as u32);

@@ -77,9 +77,31 @@ pub fn split_scale_range(lo: f32, hi: f32) -> Vec<(f32, f32)> {
 /// The passes that show a `iw x ih` image to the network for a `tw x th` template whose objects
 /// are expected at scales `lo..hi`.
 pub fn scale_passes(tw: u32, th: u32, iw: u32, ih: u32, lo: f32, hi: f32) -> Vec<ScalePass> {
+    scale_passes_at(tw, th, iw, ih, lo, hi, 1.0)
+}
+
+/// As [`scale_passes`], with objects shown at `grid_scale` times the template's grid size (1:
+/// the size the network was trained around; below 1 the frame is shrunk further, which costs
+/// `grid_scale²` of the network pixels; how far recall holds is measured by `cargo bench
+/// --bench frames` with `POSEMATCH_BENCH_GRID_SCALES`).
+pub fn scale_passes_at(
+    tw: u32,
+    th: u32,
+    iw: u32,
+    ih: u32,
+    lo: f32,
+    hi: f32,
+    grid_scale: f32,
+) -> Vec<ScalePass> {
     split_scale_range(lo, hi)
         .into_iter()
-        .map(|(a, b)| scale_pass(iw, ih, scale_factor(TEMPLATE_GRID, tw, th, a, b)))
+        .map(|(a, b)| {
+            scale_pass(
+                iw,
+                ih,
+                grid_scale * scale_factor(TEMPLATE_GRID, tw, th, a, b),
+            )
+        })
         .collect()
 }
 
@@ -206,5 +228,15 @@ mod tests {
         assert_eq!(parts.len(), 3);
         assert!((parts[0].0 - 0.25).abs() < 1e-6 && (parts[2].1 - 4.0).abs() < 1e-4);
         assert_eq!(split_scale_range(0.8, 1.5).len(), 1);
+    }
+
+    #[test]
+    fn grid_scale_shrinks_every_pass_and_one_keeps_todays_plan() {
+        let today = scale_passes(28, 52, 2048, 2048, 1.0, 1.0);
+        assert_eq!(scale_passes_at(28, 52, 2048, 2048, 1.0, 1.0, 1.0), today);
+        let half = scale_passes_at(28, 52, 2048, 2048, 1.0, 1.0, 0.5);
+        assert_eq!(half.len(), today.len());
+        assert!(half[0].width.abs_diff(today[0].width / 2) <= 1);
+        assert!(network_pixels(&half) * 4 <= network_pixels(&today) + 4 * 2048);
     }
 }
