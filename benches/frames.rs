@@ -13,7 +13,7 @@
 //! and its angle within 15° (one detection per truth). `cargo bench --bench frames`;
 //! `POSEMATCH_BENCH_FRAMES` sets frames per case (default 2), `POSEMATCH_BENCH_THREADS` the
 //! thread counts (default `1,2`), `POSEMATCH_BENCH_GRID_SCALES` the objects' sizes on the
-//! network grid to compare (default `1`; see `plan::scale_passes_at`).
+//! network grid to compare (default `1`; see `plan::scale_passes`).
 
 use std::path::PathBuf;
 use std::time::Instant;

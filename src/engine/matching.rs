@@ -90,6 +90,7 @@ impl Engine {
             image.height,
             &options,
             self.max_network_pixels,
+            crate::matcher::plan::DEFAULT_GRID_SCALE,
         )?;
         let (reply, answer) = oneshot::channel();
         self.batcher

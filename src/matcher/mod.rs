@@ -141,7 +141,7 @@ pub struct Matcher {
     /// Network inputs up to this many pixels run whole; larger ones are tiled.
     max_whole_pixels: usize,
     /// Objects' size on the network grid relative to the template grid (see
-    /// [`plan::scale_passes_at`]); 1 everywhere but in measurements.
+    /// [`plan::scale_passes`]); [`plan::DEFAULT_GRID_SCALE`] everywhere but in measurements.
     grid_scale: f32,
 }
 
@@ -161,7 +161,7 @@ impl Matcher {
             device,
             convention,
             max_whole_pixels: plan::MAX_WHOLE_PIXELS,
-            grid_scale: 1.0,
+            grid_scale: plan::DEFAULT_GRID_SCALE,
         }
     }
 
@@ -359,6 +359,7 @@ pub fn check_pair_sizes(tw: u32, th: u32, iw: u32, ih: u32) -> Result<(), MatchE
 /// The scale passes of a search, or [`MatchError::TooMuchWork`] when they would need more than
 /// `budget` network pixels (see [`plan::network_pixels`]). The service checks its configured
 /// budget before queueing; the matcher applies the hard limit [`MAX_NETWORK_PIXELS`].
+/// `grid_scale`: see [`plan::scale_passes`].
 pub fn check_network_budget(
     tw: u32,
     th: u32,
@@ -366,9 +367,10 @@ pub fn check_network_budget(
     ih: u32,
     options: &ValidOptions,
     budget: u64,
+    grid_scale: f32,
 ) -> Result<Vec<ScalePass>, MatchError> {
     let (lo, hi) = options.scale_range.map_or((1.0, 1.0), |r| (r.min, r.max));
-    let passes = plan::scale_passes(tw, th, iw, ih, lo, hi);
+    let passes = plan::scale_passes(tw, th, iw, ih, lo, hi, grid_scale);
     let pixels = plan::network_pixels(&passes);
     if pixels > budget {
         return Err(MatchError::TooMuchWork {
@@ -395,14 +397,7 @@ fn prepare(
     let (tw, th) = (job.template.width, job.template.height);
     let (iw, ih) = (job.image.width, job.image.height);
     check_pair_sizes(tw, th, iw, ih)?;
-    let mut passes = check_network_budget(tw, th, iw, ih, job.options, MAX_NETWORK_PIXELS)?;
-    if grid_scale != 1.0 {
-        let (lo, hi) = job
-            .options
-            .scale_range
-            .map_or((1.0, 1.0), |r| (r.min, r.max));
-        passes = plan::scale_passes_at(tw, th, iw, ih, lo, hi, grid_scale);
-    }
+    let passes = check_network_budget(tw, th, iw, ih, job.options, MAX_NETWORK_PIXELS, grid_scale)?;
     let mut pieces = Vec::new();
     for pass in passes {
         let resized = resize_rgb(job.image, pass.width as u32, pass.height as u32);

@@ -74,17 +74,16 @@ pub fn split_scale_range(lo: f32, hi: f32) -> Vec<(f32, f32)> {
         .collect()
 }
 
-/// The passes that show a `iw x ih` image to the network for a `tw x th` template whose objects
-/// are expected at scales `lo..hi`.
-pub fn scale_passes(tw: u32, th: u32, iw: u32, ih: u32, lo: f32, hi: f32) -> Vec<ScalePass> {
-    scale_passes_at(tw, th, iw, ih, lo, hi, 1.0)
-}
+/// Objects' size on the network grid relative to the template grid that the service and the
+/// CLI use: the size the network was trained around.
+pub const DEFAULT_GRID_SCALE: f32 = 1.0;
 
-/// As [`scale_passes`], with objects shown at `grid_scale` times the template's grid size (1:
-/// the size the network was trained around; below 1 the frame is shrunk further, which costs
-/// `grid_scale²` of the network pixels; how far recall holds is measured by `cargo bench
-/// --bench frames` with `POSEMATCH_BENCH_GRID_SCALES`).
-pub fn scale_passes_at(
+/// The passes that show a `iw x ih` image to the network for a `tw x th` template whose objects
+/// are expected at scales `lo..hi`, shown at `grid_scale` times the template's grid size
+/// ([`DEFAULT_GRID_SCALE`]; below it the frame is shrunk further, which costs `grid_scale²` of
+/// the network pixels; how far recall holds is measured by `cargo bench --bench frames` with
+/// `POSEMATCH_BENCH_GRID_SCALES`).
+pub fn scale_passes(
     tw: u32,
     th: u32,
     iw: u32,
@@ -231,10 +230,10 @@ mod tests {
     }
 
     #[test]
-    fn grid_scale_shrinks_every_pass_and_one_keeps_todays_plan() {
-        let today = scale_passes(28, 52, 2048, 2048, 1.0, 1.0);
-        assert_eq!(scale_passes_at(28, 52, 2048, 2048, 1.0, 1.0, 1.0), today);
-        let half = scale_passes_at(28, 52, 2048, 2048, 1.0, 1.0, 0.5);
+    fn grid_scale_shrinks_every_pass() {
+        let today = scale_passes(28, 52, 2048, 2048, 1.0, 1.0, DEFAULT_GRID_SCALE);
+        assert!((today[0].factor_x - scale_factor(36, 28, 52, 1.0, 1.0)).abs() < 1e-3);
+        let half = scale_passes(28, 52, 2048, 2048, 1.0, 1.0, 0.5);
         assert_eq!(half.len(), today.len());
         assert!(half[0].width.abs_diff(today[0].width / 2) <= 1);
         assert!(network_pixels(&half) * 4 <= network_pixels(&today) + 4 * 2048);
