@@ -26,7 +26,11 @@ pub struct ServeArgs {
     /// Weights file (.bpk, .pth, .safetensors); default: the weights embedded in the binary.
     #[arg(long)]
     weights: Option<PathBuf>,
-    /// Where registered templates are persisted (default ./data/templates).
+    /// Where registered templates are kept: a directory, or postgres://USER@HOST/DATABASE for
+    /// a database shared by replicas (default: --template-dir).
+    #[arg(long)]
+    template_store: Option<String>,
+    /// Template directory when no --template-store is given (default ./data/templates).
     #[arg(long)]
     template_dir: Option<PathBuf>,
     /// PEM certificate chain: serve TLS only (with --tls-key).
@@ -49,6 +53,7 @@ pub fn run(args: ServeArgs) -> Result<(), CliError> {
         metrics_listen: args.metrics_listen,
         weights: args.weights,
         template_dir: args.template_dir,
+        template_store: args.template_store,
         tls_cert: args.tls_cert,
         tls_key: args.tls_key,
         tls_client_ca: args.tls_client_ca,

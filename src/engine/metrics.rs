@@ -32,6 +32,17 @@ pub struct Metrics {
     pub templates: IntGauge,
     /// Files in the template directory that were not valid templates, moved aside at start.
     pub store_files_set_aside: IntCounter,
+    /// Wall time of each template-store operation (`get`, `put`, `list`, …), and the ones that
+    /// failed, by operation.
+    pub store_seconds: HistogramVec,
+    pub store_errors: IntCounterVec,
+    /// Template changes announced by other replicas (database store).
+    pub store_notifications: IntCounter,
+    /// Times the database store's listening connection came back after being lost.
+    pub store_reconnects: IntCounter,
+    /// 1 while this replica hears other replicas' changes (database store; always 1 for a
+    /// directory, which no one else writes).
+    pub store_listening: IntGauge,
 }
 
 impl Default for Metrics {
@@ -114,6 +125,41 @@ impl Metrics {
             "Files in the template directory that were not valid templates, moved aside at start",
         )
         .expect("valid metric");
+        let store_seconds = HistogramVec::new(
+            HistogramOpts::new(
+                "posematch_store_duration_seconds",
+                "Template store operation wall time, by operation",
+            )
+            .buckets(vec![
+                0.0005, 0.001, 0.0025, 0.005, 0.01, 0.025, 0.05, 0.1, 0.25, 0.5, 1.0, 5.0, 10.0,
+            ]),
+            &["operation"],
+        )
+        .expect("valid metric");
+        let store_errors = IntCounterVec::new(
+            Opts::new(
+                "posematch_store_errors_total",
+                "Template store operations that failed, by operation",
+            ),
+            &["operation"],
+        )
+        .expect("valid metric");
+        let store_notifications = IntCounter::new(
+            "posematch_store_notifications_total",
+            "Template changes announced by other replicas through the database",
+        )
+        .expect("valid metric");
+        let store_reconnects = IntCounter::new(
+            "posematch_store_reconnects_total",
+            "Times the database's change notifications were listened to again after a lost connection (every cached kernel dropped)",
+        )
+        .expect("valid metric");
+        let store_listening = IntGauge::new(
+            "posematch_store_listening",
+            "1 while this replica hears other replicas' template changes",
+        )
+        .expect("valid metric");
+        store_listening.set(1);
         for collector in [
             Box::new(requests.clone()) as Box<dyn prometheus::core::Collector>,
             Box::new(latency_seconds.clone()),
@@ -127,6 +173,11 @@ impl Metrics {
             Box::new(cache_evictions.clone()),
             Box::new(templates.clone()),
             Box::new(store_files_set_aside.clone()),
+            Box::new(store_seconds.clone()),
+            Box::new(store_errors.clone()),
+            Box::new(store_notifications.clone()),
+            Box::new(store_reconnects.clone()),
+            Box::new(store_listening.clone()),
         ] {
             registry.register(collector).expect("unique metric names");
         }
@@ -144,6 +195,11 @@ impl Metrics {
             cache_evictions,
             templates,
             store_files_set_aside,
+            store_seconds,
+            store_errors,
+            store_notifications,
+            store_reconnects,
+            store_listening,
         }
     }
 

@@ -1,31 +1,31 @@
-//! The service's domain layer, independent of gRPC: a registry of templates (durable on disk,
-//! their encoded kernels in a bounded cache; [`registry`]) and matching through the batching
-//! model thread ([`matching`]). This file holds what both share: the engine, its start-up and
-//! its errors.
+//! The service's domain layer, independent of gRPC: a registry of templates (durable in a
+//! [`store`], a directory or a database shared by replicas; their encoded kernels in a bounded,
+//! coherent cache, [`kernels`]; [`registry`]) and matching through the batching model thread
+//! ([`matching`]). This file holds what they share: the engine, its start-up and its errors.
 //!
 //! The gRPC layer ([`crate::grpc`]) only converts messages and maps [`EngineError`] to status
 //! codes; every rule about templates, limits and options lives here or below.
 
 pub mod batcher;
+mod kernels;
 mod matching;
 pub mod metrics;
 mod registry;
 pub mod store;
 
-use std::path::PathBuf;
-use std::sync::{Arc, RwLock};
+use std::sync::Arc;
+use std::time::Duration;
 
-use tokio::sync::Mutex;
-
-use crate::matcher::{EncodedTemplate, MatchError, Matcher};
+use crate::matcher::{MatchError, Matcher};
 use batcher::{Batcher, EncodeError};
+use kernels::KernelCache;
 pub use matching::{MatchAnswer, Roi};
 pub use metrics::Metrics;
 pub use registry::{
     DEFAULT_PAGE_SIZE, MAX_LABEL_KEY_BYTES, MAX_LABEL_VALUE_BYTES, MAX_LABELS, MAX_PAGE_SIZE,
     MAX_TEMPLATE_ID_BYTES,
 };
-use store::{StoreError, TemplateIndex, TemplateStore};
+use store::{StoreError, StoreEvent, TemplateStore};
 
 /// How the engine is sized.
 #[derive(Debug, Clone)]
@@ -36,8 +36,8 @@ pub struct EngineConfig {
     pub queue_size: usize,
     /// Most encoded template kernels kept in memory.
     pub cache_size: u64,
-    /// Where registered templates are persisted.
-    pub template_dir: PathBuf,
+    /// How long a database store may be unreachable before health reports NOT_SERVING.
+    pub database_grace: Duration,
     /// Most network pixels one network search may need (its compute budget; see
     /// [`crate::matcher::check_network_budget`]).
     pub max_network_pixels: u64,
@@ -86,77 +86,95 @@ impl From<EncodeError> for EngineError {
 
 /// Templates plus the model.
 pub struct Engine {
-    store: Arc<TemplateStore>,
-    index: RwLock<TemplateIndex>,
-    /// Serialises registrations and deletions (the index and the disk change together).
-    writes: Mutex<()>,
-    kernels: moka::sync::Cache<String, Arc<EncodedTemplate>>,
+    store: TemplateStore,
+    /// Whether this replica counts its own writes in the `templates` gauge (a directory); a
+    /// shared store announces every write, this replica's included, and the count follows
+    /// the announcements.
+    counts_own_writes: bool,
+    kernels: Arc<KernelCache>,
     batcher: Batcher,
     /// One classical (NCC) search at a time: each keeps the cores busy for about a second.
     classical: tokio::sync::Semaphore,
     /// Compute budget of one network search, checked before it queues.
     max_network_pixels: u64,
+    database_grace: Duration,
     metrics: Metrics,
 }
 
 impl Engine {
-    /// Opens the template directory (reading only metadata) and starts the model thread.
+    /// Starts the model thread over an opened store, and follows the store's announcements of
+    /// other replicas' changes. Runs inside the async runtime.
     pub fn start(
         config: &EngineConfig,
+        store: TemplateStore,
+        templates: usize,
         matcher: Matcher,
         metrics: Metrics,
-    ) -> Result<Self, EngineError> {
-        let (store, opened) = TemplateStore::open(&config.template_dir)?;
-        metrics.templates.set(opened.metas.len() as i64);
-        metrics
-            .store_files_set_aside
-            .inc_by(opened.set_aside.len() as u64);
-        let index: TemplateIndex = opened
-            .metas
-            .into_iter()
-            .map(|m| (m.template_id.clone(), m))
-            .collect();
-        let evictions = metrics.cache_evictions.clone();
-        let kernels = moka::sync::Cache::builder()
-            .max_capacity(config.cache_size.max(1))
-            .eviction_listener(move |_key, _value, cause| {
-                if cause.was_evicted() {
-                    evictions.inc();
+    ) -> Self {
+        metrics.templates.set(templates as i64);
+        let kernels = Arc::new(KernelCache::new(
+            config.cache_size,
+            metrics.cache_evictions.clone(),
+        ));
+        let events = store.take_events();
+        let counts_own_writes = events.is_none();
+        if let Some(mut events) = events {
+            let (kernels, templates) = (kernels.clone(), metrics.templates.clone());
+            tokio::spawn(async move {
+                while let Some(event) = events.recv().await {
+                    match event {
+                        StoreEvent::Changed {
+                            template_id,
+                            content_sha256,
+                            created,
+                        } => {
+                            kernels.changed(&template_id, content_sha256.as_deref());
+                            // Every write is announced, this replica's own included: the
+                            // count follows announcements (store checks set it exactly).
+                            if created {
+                                templates.inc();
+                            } else if content_sha256.is_none() {
+                                templates.dec();
+                            }
+                        }
+                        StoreEvent::Resynchronise => kernels.clear(),
+                    }
                 }
-            })
-            .build();
+            });
+        }
         let batcher = Batcher::spawn(
             matcher,
             config.max_batch_size,
             config.queue_size.max(1),
             metrics.clone(),
         );
-        tracing::info!(
-            templates = index.len(),
-            dir = %config.template_dir.display(),
-            "template registry opened"
-        );
-        Ok(Self {
-            store: Arc::new(store),
-            index: RwLock::new(index),
-            writes: Mutex::new(()),
+        Self {
+            store,
+            counts_own_writes,
             kernels,
             batcher,
             classical: tokio::sync::Semaphore::new(1),
             max_network_pixels: config.max_network_pixels,
+            database_grace: config.database_grace,
             metrics,
-        })
+        }
     }
 
     pub fn metrics(&self) -> &Metrics {
         &self.metrics
     }
 
-    /// Whether a registration could be written now (see [`TemplateStore::check_writable`]);
-    /// the service reports NOT_SERVING while it cannot.
-    pub async fn store_writable(&self) -> Result<(), EngineError> {
-        let store = self.store.clone();
-        Ok(blocking(move || store.check_writable()).await??)
+    /// Whether registrations could be written now ([`TemplateStore::check`]); refreshes the
+    /// template count, which other replicas may have changed.
+    pub async fn check_store(&self) -> Result<(), StoreError> {
+        let count = self.store.check().await?;
+        self.metrics.templates.set(count as i64);
+        Ok(())
+    }
+
+    /// How long [`Engine::check_store`] may fail before health reports NOT_SERVING.
+    pub fn store_grace(&self) -> Duration {
+        self.store.health_grace(self.database_grace)
     }
 
     /// True while the model thread runs (see [`Batcher::alive`]): the service's health.

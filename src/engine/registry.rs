@@ -1,12 +1,12 @@
-//! The template registry: durable templates by ID (the [`super::store`] on disk, an index in
-//! memory, encoded kernels in a bounded cache). Registrations and deletions are serialised so the
-//! index and the disk change together; reads never wait for them.
+//! The template registry: templates by ID in the configured [`super::store`] (the system of
+//! record, a directory or a database), their encoded kernels in the [`super::kernels`] cache.
+//! The store makes each write atomic and announces other replicas' changes; this layer checks
+//! what clients send, encodes kernels on the model thread and keeps the cache in step.
 
 use std::collections::BTreeMap;
 use std::sync::Arc;
-use std::time::{SystemTime, UNIX_EPOCH};
 
-use super::store::{TemplateMeta, content_sha256};
+use super::store::{NewTemplate, PutOutcome, TemplateMeta, content_sha256, encode_png16};
 use super::{Engine, EngineError, blocking};
 use crate::imaging::RgbImage32;
 use crate::matcher::EncodedTemplate;
@@ -24,7 +24,7 @@ pub const MAX_PAGE_SIZE: usize = 1000;
 impl Engine {
     /// Registers `image` under `template_id` (derived from the content when empty). The same
     /// image under the same ID is a no-op; a different one needs `replace`. Returns once the
-    /// template is on disk.
+    /// template is committed to the store.
     pub async fn register(
         &self,
         template_id: &str,
@@ -42,69 +42,64 @@ impl Engine {
             check_template_id(template_id)?;
             template_id.to_owned()
         };
-        let _writing = self.writes.lock().await;
-        let previous = self.lookup(&template_id);
-        if let Some(existing) = &previous {
+        // Answer the common no-op and conflict without encoding; the store checks again
+        // atomically with the write.
+        if let Some(existing) = self.store.get(&template_id).await? {
             if existing.content_sha256 == content {
-                return Ok(existing.clone());
+                return Ok(existing);
             }
             if !replace {
                 return Err(EngineError::AlreadyExists(template_id));
             }
         }
         // Encoding validates the template (size limits) before anything is written.
-        let encoded = self.batcher.encode((*image).clone()).await?;
-        let meta = TemplateMeta {
+        let encoded = Arc::new(self.batcher.encode((*image).clone()).await?);
+        let stored = image.clone();
+        let png = blocking(move || encode_png16(&stored)).await?;
+        let new = NewTemplate {
             template_id: template_id.clone(),
             width: image.width,
             height: image.height,
             labels,
-            content_sha256: content,
-            created_unix_ms: SystemTime::now()
-                .duration_since(UNIX_EPOCH)
-                .map_or(0, |d| d.as_millis() as i64),
+            content_sha256: content.clone(),
+            png,
         };
-        let (saved_meta, store) = (meta.clone(), self.store.clone());
-        blocking(move || store.save(&saved_meta, &image, previous.as_ref())).await??;
-        let count = {
-            let mut index = self.index.write().expect("index lock");
-            index.insert(template_id.clone(), meta.clone());
-            index.len()
-        };
-        self.metrics.templates.set(count as i64);
-        self.kernels.insert(template_id, Arc::new(encoded));
-        Ok(meta)
+        let ticket = self.kernels.ticket();
+        match self.store.put(new, replace).await? {
+            PutOutcome::Unchanged(meta) => Ok(meta),
+            PutOutcome::Conflict(_) => Err(EngineError::AlreadyExists(template_id)),
+            PutOutcome::Written { meta, created } => {
+                if created && self.counts_own_writes {
+                    self.metrics.templates.inc();
+                }
+                self.kernels
+                    .insert_written(&template_id, &content, encoded, ticket);
+                Ok(meta)
+            }
+        }
     }
 
-    fn lookup(&self, template_id: &str) -> Option<TemplateMeta> {
-        self.index
-            .read()
-            .expect("index lock")
+    pub async fn get(&self, template_id: &str) -> Result<TemplateMeta, EngineError> {
+        self.store
             .get(template_id)
-            .cloned()
-    }
-
-    pub fn get(&self, template_id: &str) -> Result<TemplateMeta, EngineError> {
-        self.lookup(template_id)
+            .await?
             .ok_or_else(|| EngineError::NotFound(template_id.to_owned()))
     }
 
     /// A template's metadata and its stored image file (a 16-bit RGB PNG whose pixels hash to
-    /// the metadata's `content_sha256`), read together under the write lock so a concurrent
-    /// replacement cannot pair one with the other's.
+    /// the metadata's `content_sha256`), read together.
     pub async fn get_with_image(
         &self,
         template_id: &str,
     ) -> Result<(TemplateMeta, Vec<u8>), EngineError> {
-        let _writing = self.writes.lock().await;
-        let meta = self.get(template_id)?;
-        let (store, read) = (self.store.clone(), meta.clone());
-        let png = blocking(move || store.image_bytes(&read)).await??;
-        Ok((meta, png))
+        self.store
+            .get_with_image(template_id)
+            .await?
+            .ok_or_else(|| EngineError::NotFound(template_id.to_owned()))
     }
 
     /// One page of templates in ID order; the token is where the next page starts.
-    pub fn list(
+    pub async fn list(
         &self,
         page_size: usize,
         page_token: &str,
@@ -130,18 +125,10 @@ impl Engine {
                 EngineError::InvalidArgument("page_token is not one this server issued".into())
             })?)
         };
-        let index = self.index.read().expect("index lock");
-        let mut ids: Vec<&String> = index
-            .keys()
-            .filter(|id| after.as_ref().is_none_or(|a| *id > a))
-            .collect();
-        ids.sort();
-        let page: Vec<TemplateMeta> = ids
-            .iter()
-            .take(page_size)
-            .map(|id| index[*id].clone())
-            .collect();
-        let next = if ids.len() > page_size {
+        // One more than the page: whether a next page exists.
+        let mut page = self.store.list(after.as_deref(), page_size + 1).await?;
+        let next = if page.len() > page_size {
+            page.truncate(page_size);
             hex::encode(page.last().expect("non-empty page").template_id.as_bytes())
         } else {
             String::new()
@@ -149,25 +136,19 @@ impl Engine {
         Ok((page, next))
     }
 
-    /// Removes a template from disk, index and cache. `false` when it was not registered.
+    /// Removes a template from the store and the cache. `false` when it was not registered.
     pub async fn delete(&self, template_id: &str) -> Result<bool, EngineError> {
-        let _writing = self.writes.lock().await;
-        let Some(meta) = self.lookup(template_id) else {
-            return Ok(false);
-        };
-        let store = self.store.clone();
-        blocking(move || store.remove(&meta)).await??;
-        let count = {
-            let mut index = self.index.write().expect("index lock");
-            index.remove(template_id);
-            index.len()
-        };
-        self.metrics.templates.set(count as i64);
-        self.kernels.invalidate(template_id);
-        Ok(true)
+        let removed = self.store.remove(template_id).await?;
+        // Dropped even when this replica found nothing: another may have deleted it first.
+        self.kernels.changed(template_id, None);
+        if removed && self.counts_own_writes {
+            self.metrics.templates.dec();
+        }
+        Ok(removed)
     }
 
-    /// The template's kernel: from the cache, or read from disk and encoded on the model thread.
+    /// The template's kernel: from the cache (no store access, so cached templates match while
+    /// a database is down), or read from the store and encoded on the model thread.
     pub(super) async fn kernel(
         &self,
         template_id: &str,
@@ -177,17 +158,15 @@ impl Engine {
             return Ok(kernel);
         }
         self.metrics.cache_misses.inc();
-        let meta = self.get(template_id)?;
-        let (store, read) = (self.store.clone(), meta.clone());
-        let image = blocking(move || store.load_image(&read)).await??;
+        let ticket = self.kernels.ticket();
+        let (meta, image) = self
+            .store
+            .load(template_id)
+            .await?
+            .ok_or_else(|| EngineError::NotFound(template_id.to_owned()))?;
         let encoded = Arc::new(self.batcher.encode(image).await?);
-        // A concurrent delete or replace wins: only cache what is still registered as read.
-        if self
-            .lookup(template_id)
-            .is_some_and(|m| m.content_sha256 == meta.content_sha256)
-        {
-            self.kernels.insert(template_id.to_owned(), encoded.clone());
-        }
+        self.kernels
+            .insert_read(template_id, &meta.content_sha256, encoded.clone(), ticket);
         Ok(encoded)
     }
 }

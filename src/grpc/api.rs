@@ -264,6 +264,7 @@ impl PoseMatcher for Api {
                 .map_err(status_of),
             Ok(engine) => engine
                 .get(&request.template_id)
+                .await
                 .map(|meta| Response::new(template_info(meta)))
                 .map_err(status_of),
         };
@@ -277,17 +278,19 @@ impl PoseMatcher for Api {
     ) -> Result<Response<proto::ListTemplatesResponse>, Status> {
         let started = Instant::now();
         let request = request.into_inner();
-        let result = self.engine().and_then(|engine| {
-            engine
+        let result = match self.engine() {
+            Err(status) => Err(status),
+            Ok(engine) => engine
                 .list(request.page_size as usize, &request.page_token)
+                .await
                 .map(|(page, next_page_token)| {
                     Response::new(proto::ListTemplatesResponse {
                         templates: page.into_iter().map(template_info).collect(),
                         next_page_token,
                     })
                 })
-                .map_err(status_of)
-        });
+                .map_err(status_of),
+        };
         self.record("ListTemplates", started, &result);
         result
     }

@@ -7,7 +7,7 @@ use std::time::{Duration, Instant};
 use tonic::Status;
 
 use super::proto;
-use crate::engine::store::TemplateMeta;
+use crate::engine::store::{StoreError, TemplateMeta};
 use crate::engine::{EngineError, Roi};
 use crate::geometry::Pose;
 use crate::imaging::{DecodeError, ImageLimits, RgbImage32, decode_image};
@@ -21,7 +21,9 @@ pub fn status_of(error: EngineError) -> Status {
         EngineError::InvalidArgument(_) | EngineError::Match(_) => {
             Status::invalid_argument(message)
         }
-        EngineError::Unavailable(_) => Status::unavailable(message),
+        EngineError::Unavailable(_) | EngineError::Store(StoreError::Unavailable(_)) => {
+            Status::unavailable(message)
+        }
         EngineError::NotFound(_) => Status::not_found(message),
         EngineError::AlreadyExists(_) => Status::already_exists(message),
         EngineError::ResourceExhausted(_) => Status::resource_exhausted(message),
@@ -230,6 +232,8 @@ pub fn template_info(meta: TemplateMeta) -> proto::TemplateInfo {
         labels: meta.labels.into_iter().collect(),
         content_sha256: meta.content_sha256,
         created_unix_ms: meta.created_unix_ms,
+        updated_unix_ms: meta.updated_unix_ms,
+        version: meta.version,
         image: None,
     }
 }
@@ -283,6 +287,15 @@ mod tests {
         ));
         assert_eq!(status.code(), tonic::Code::InvalidArgument);
         assert!(status.message().contains("4x4"));
+        let status = status_of(EngineError::from(StoreError::Unavailable(
+            "connection refused".into(),
+        )));
+        assert_eq!(status.code(), tonic::Code::Unavailable);
+        assert!(
+            status.message().contains("unreachable") && status.message().contains("cached"),
+            "{}",
+            status.message()
+        );
     }
 
     fn raw(

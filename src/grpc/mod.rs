@@ -18,6 +18,7 @@ use tokio::net::TcpListener;
 use tokio::sync::watch;
 use tokio_stream::wrappers::TcpListenerStream;
 
+use crate::engine::store::{StoreError, StoreLocation, TemplateStore};
 use crate::engine::{Engine, EngineConfig, Metrics};
 use crate::matcher::Matcher;
 pub use security::AccessTokens;
@@ -164,28 +165,34 @@ impl RunningServer {
             max_batch_size: settings.max_batch_size,
             queue_size: settings.queue_size,
             cache_size: settings.cache_size,
-            template_dir: settings.template_dir.clone(),
+            database_grace: Duration::from_secs(settings.database_grace_seconds),
             max_network_pixels: settings.max_network_pixels,
         };
+        let location = settings.store_location();
         tokio::spawn(async move {
-            let built = tokio::task::spawn_blocking(move || {
-                let matcher = loader()?;
-                Engine::start(&config, matcher, metrics).map_err(|e| e.to_string())
-            })
-            .await
-            .map_err(|e| format!("model loading failed: {e}"))
-            .and_then(|r| r);
-            match built {
-                Ok(built) => {
-                    let built = Arc::new(built);
-                    let _ = engine.set(built.clone());
+            let (opened, loaded) = tokio::join!(
+                open_store(&location, &metrics),
+                tokio::task::spawn_blocking(loader)
+            );
+            let loaded = loaded
+                .map_err(|e| format!("model loading failed: {e}"))
+                .and_then(|r| r);
+            match (opened, loaded) {
+                (Ok((store, templates)), Ok(matcher)) => {
                     tracing::info!("model loaded");
+                    let built =
+                        Arc::new(Engine::start(&config, store, templates, matcher, metrics));
+                    let _ = engine.set(built.clone());
                     report_health(built, health, move || {
                         let _ = ready_tx.send(Some(Ok(())));
                     })
                     .await;
                 }
-                Err(message) => {
+                (Err(message), _) => {
+                    tracing::error!(%message, "the template store could not be opened");
+                    let _ = ready_tx.send(Some(Err(message)));
+                }
+                (_, Err(message)) => {
                     tracing::error!(%message, "the model could not be loaded");
                     let _ = ready_tx.send(Some(Err(message)));
                 }
@@ -237,13 +244,49 @@ impl RunningServer {
     }
 }
 
-/// How often the template directory is probed for writability.
+/// How often the template store is probed (writability of a directory, reachability of a
+/// database), and how often while it fails.
 const STORE_RECHECK: Duration = Duration::from_secs(5);
+const STORE_RECHECK_FAILING: Duration = Duration::from_secs(1);
+/// Backoff between attempts to reach the database at start.
+const STORE_RETRY_MOST: Duration = Duration::from_secs(5);
+
+/// Opens the template store; a database that cannot be reached yet is retried (health stays
+/// NOT_SERVING meanwhile, as while the model loads), anything else fails the start.
+async fn open_store(
+    location: &StoreLocation,
+    metrics: &Metrics,
+) -> Result<(TemplateStore, usize), String> {
+    let mut wait = Duration::from_millis(250);
+    loop {
+        match TemplateStore::open(location, metrics).await {
+            Ok((store, opened)) => {
+                metrics
+                    .store_files_set_aside
+                    .inc_by(opened.set_aside as u64);
+                tracing::info!(
+                    templates = opened.templates,
+                    store = %location,
+                    "template registry opened"
+                );
+                return Ok((store, opened.templates));
+            }
+            Err(e @ StoreError::Unavailable(_)) => {
+                tracing::warn!(error = %e, store = %location, retry_in = ?wait, "template store not reachable yet");
+                tokio::time::sleep(wait).await;
+                wait = (wait * 2).min(STORE_RETRY_MOST);
+            }
+            Err(e) => return Err(format!("{location}: {e}")),
+        }
+    }
+}
 
 /// Keeps health true to what the service can do: SERVING while the model thread runs and the
-/// template directory is writable (a read-only volume would fail every registration; probed
-/// every [`STORE_RECHECK`]), NOT_SERVING otherwise, each change logged with its reason. Ends
-/// when the model thread ends (for good). `reported` runs once the first status is set.
+/// template store works (probed every [`STORE_RECHECK`]: a read-only template directory would
+/// fail every registration and is reported at once; a database gets `database_grace_seconds`
+/// to come back, since cached templates keep matching), NOT_SERVING otherwise, each change
+/// logged with its reason. Ends when the model thread ends (for good). `reported` runs once the
+/// first status is set.
 async fn report_health(
     engine: Arc<Engine>,
     health: tonic_health::server::HealthReporter,
@@ -252,10 +295,29 @@ async fn report_health(
     let mut reported = Some(reported);
     let mut model_alive = engine.model_alive();
     let mut last: Option<bool> = None;
+    let grace = engine.store_grace();
+    let mut failing_since: Option<std::time::Instant> = None;
     loop {
         let alive = *model_alive.borrow_and_update();
-        let writable = engine.store_writable().await;
-        let serving = alive && writable.is_ok();
+        let store = engine.check_store().await;
+        let store_ok = match &store {
+            Ok(()) => {
+                if failing_since.take().is_some() && !grace.is_zero() {
+                    tracing::info!("the template store is reachable again");
+                }
+                true
+            }
+            Err(e) => {
+                if failing_since.is_none() && !grace.is_zero() {
+                    tracing::warn!(error = %e, ?grace, "the template store is unreachable; cached templates keep matching");
+                }
+                failing_since
+                    .get_or_insert_with(std::time::Instant::now)
+                    .elapsed()
+                    < grace
+            }
+        };
+        let serving = alive && store_ok;
         if last != Some(serving) {
             if serving {
                 tracing::info!("serving");
@@ -269,11 +331,16 @@ async fn report_health(
                 if !alive {
                     tracing::error!("the model thread ended; health reports NOT_SERVING");
                 }
-                if let Err(e) = &writable {
-                    tracing::error!(
+                match &store {
+                    Err(e @ StoreError::Io { .. }) => tracing::error!(
                         error = %e,
                         "the template directory is not writable (check the volume's mount and permissions); health reports NOT_SERVING until it is"
-                    );
+                    ),
+                    Err(e) => tracing::error!(
+                        error = %e,
+                        "the template store has been unreachable for longer than database_grace_seconds; health reports NOT_SERVING until it is back"
+                    ),
+                    Ok(()) => {}
                 }
                 health
                     .set_service_status("", tonic_health::ServingStatus::NotServing)
@@ -290,9 +357,14 @@ async fn report_health(
         if !alive {
             return;
         }
+        let recheck = if failing_since.is_some() {
+            STORE_RECHECK_FAILING
+        } else {
+            STORE_RECHECK
+        };
         tokio::select! {
             _ = model_alive.changed() => {}
-            _ = tokio::time::sleep(STORE_RECHECK) => {}
+            _ = tokio::time::sleep(recheck) => {}
         }
     }
 }

@@ -6,6 +6,7 @@ use std::path::{Path, PathBuf};
 
 use serde::{Deserialize, Serialize};
 
+use crate::engine::store::StoreLocation;
 use crate::matcher::MatchOptions;
 
 /// Log line format.
@@ -35,8 +36,14 @@ pub struct Settings {
     pub queue_size: usize,
     /// Most encoded template kernels kept in memory (each ~31 kB plus the template in grey).
     pub cache_size: u64,
-    /// Where registered templates are persisted.
+    /// Where registered templates are kept: a directory, or `postgres://…` for a database
+    /// shared by replicas. Empty: the directory `template_dir`.
+    pub template_store: String,
+    /// The template directory when `template_store` is not set (the older key, kept working).
     pub template_dir: PathBuf,
+    /// Seconds a database `template_store` may be unreachable before health reports
+    /// NOT_SERVING (cached templates keep matching meanwhile).
+    pub database_grace_seconds: u64,
     /// Largest accepted image, in pixels (checked from the header before decoding).
     pub max_image_pixels: u64,
     /// Most request images decoded at once; the rest wait, holding only their encoded bytes.
@@ -82,6 +89,7 @@ pub struct Overrides {
     pub metrics_listen: Option<String>,
     pub weights: Option<PathBuf>,
     pub template_dir: Option<PathBuf>,
+    pub template_store: Option<String>,
     pub tls_cert: Option<PathBuf>,
     pub tls_key: Option<PathBuf>,
     pub tls_client_ca: Option<PathBuf>,
@@ -136,6 +144,7 @@ impl Settings {
             path_string(&overrides.template_dir),
         )
         .map_err(wrap)?;
+        builder = set(builder, "template_store", overrides.template_store.clone()).map_err(wrap)?;
         for (key, value) in [
             ("tls_cert", &overrides.tls_cert),
             ("tls_key", &overrides.tls_key),
@@ -156,6 +165,16 @@ impl Settings {
     /// Which weights the service runs (`weights`; empty = the embedded default).
     pub fn weights_source(&self) -> crate::model::WeightsSource {
         crate::model::WeightsSource::from_path(Some(std::path::Path::new(&self.weights)))
+    }
+
+    /// Where templates are kept: `template_store`, else the directory `template_dir`.
+    pub fn store_location(&self) -> StoreLocation {
+        if self.template_store.is_empty() {
+            StoreLocation::Directory(self.template_dir.clone())
+        } else {
+            StoreLocation::parse(&self.template_store)
+                .expect("template_store was checked when the settings were loaded")
+        }
     }
 
     /// The options a Match request's zero values stand for.
@@ -197,6 +216,20 @@ impl Settings {
             return bad(format!(
                 "queue_size = {} is out of range 1..=100000",
                 self.queue_size
+            ));
+        }
+        if !self.template_store.is_empty()
+            && let Err(message) = StoreLocation::parse(&self.template_store)
+        {
+            return bad(format!("template_store: {message}"));
+        }
+        if self.template_store.is_empty() && self.template_dir.as_os_str().is_empty() {
+            return bad("template_dir is empty: give a directory, or set template_store".into());
+        }
+        if !(1..=86_400).contains(&self.database_grace_seconds) {
+            return bad(format!(
+                "database_grace_seconds = {} is out of range 1..=86400",
+                self.database_grace_seconds
             ));
         }
         if self.cache_size == 0 {
@@ -264,6 +297,27 @@ mod tests {
         let defaults = Settings::load(None, env(&[]), &Overrides::default()).unwrap();
         assert_eq!(defaults.listen, "0.0.0.0:50051");
         assert_eq!(defaults.template_dir, PathBuf::from("./data/templates"));
+        assert!(
+            matches!(defaults.store_location(), StoreLocation::Directory(d) if d == Path::new("./data/templates"))
+        );
+        let database = Settings::load(
+            None,
+            env(&[("POSEMATCH__TEMPLATE_STORE", "postgres://app@db/posematch")]),
+            &Overrides::default(),
+        )
+        .unwrap();
+        assert!(matches!(
+            database.store_location(),
+            StoreLocation::Postgres(_)
+        ));
+        let directory = Overrides {
+            template_store: Some("/srv/templates".into()),
+            ..Overrides::default()
+        };
+        let flagged = Settings::load(None, env(&[]), &directory).unwrap();
+        assert!(
+            matches!(flagged.store_location(), StoreLocation::Directory(d) if d == Path::new("/srv/templates"))
+        );
         assert_eq!(defaults.log_format, LogFormat::Text);
 
         let dir = tempfile::tempdir().unwrap();
@@ -305,6 +359,14 @@ mod tests {
         assert!(err(&[("POSEMATCH__LISTEN", "nowhere")]).contains("listen"));
         assert!(err(&[("POSEMATCH__QUEUE_SIZE", "many")]).contains("queue_size"));
         assert!(err(&[("POSEMATCH__LOG_FORMAT", "xml")]).contains("log_format"));
+        let store = err(&[(
+            "POSEMATCH__TEMPLATE_STORE",
+            "postgres://db/x?sslmode=sometimes",
+        )]);
+        assert!(store.contains("template_store"), "{store}");
+        assert!(
+            err(&[("POSEMATCH__DATABASE_GRACE_SECONDS", "0")]).contains("database_grace_seconds")
+        );
         assert!(err(&[("POSEMATCH__MIN_SCORE", "1.5")]).contains("min_score = 1.5"));
         assert!(err(&[("POSEMATCH__CANDIDATE_THRESHOLD", "0")]).contains("candidate_threshold"));
         assert!(err(&[("POSEMATCH__MAX_CANDIDATES", "99999")]).contains("max_candidates"));

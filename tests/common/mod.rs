@@ -3,6 +3,9 @@
 
 #![allow(dead_code)]
 
+pub mod postgres;
+pub mod service;
+
 use std::path::{Path, PathBuf};
 
 use rand::rngs::StdRng;

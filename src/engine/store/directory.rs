@@ -1,10 +1,11 @@
-//! Durable template storage: what makes "a restart or a crash loses nothing that was
-//! acknowledged, and what GetTemplate reports is exactly what Match uses" true.
+//! The directory store: templates as files in a local directory, owned by one replica. What
+//! makes "a restart or a crash loses nothing that was acknowledged, and what GetTemplate reports
+//! is exactly what Match uses" true without a database.
 //!
 //! Each template is two files in the template directory, named by the SHA-256 of its ID (any
 //! UTF-8 ID is safe as a file name that way):
-//! - `<key>.<content>.png`: the registered pixels as 16-bit RGB PNG (lossless for 8- and 16-bit
-//!   inputs), `<content>` being their content hash ([`content_sha256`]);
+//! - `<key>.<content>.png`: the registered pixels as 16-bit RGB PNG, `<content>` being their
+//!   content hash ([`super::content_sha256`]);
 //! - `<key>.json`: the metadata ([`TemplateMeta`]); its presence is the commit point, and its
 //!   `content_sha256` names the one image file that belongs to it.
 //!
@@ -12,74 +13,45 @@
 //! the directory is synced. A replacement writes the new image under its own (new) name, commits
 //! the metadata, and only then removes the old image: whenever a process dies, the committed
 //! metadata names an image file that holds exactly its pixels. Loading checks the hash again.
-//! Deletion removes the metadata first. At start only the metadata is read; images that no
-//! metadata names (an interrupted registration) are removed, and files that are not ours (a
-//! `notes.json`, a damaged or zero-byte file) are moved aside into [`SET_ASIDE_DIR`] so that the
-//! service starts and an operator can look at them.
+//! Deletion removes the metadata first. At start only the metadata is read (into an index in
+//! memory); images that no metadata names (an interrupted registration) are removed, and files
+//! that are not ours (a `notes.json`, a damaged or zero-byte file) are moved aside into
+//! [`SET_ASIDE_DIR`] so that the service starts and an operator can look at them. Writes are
+//! serialised, so the index and the disk change together; reads never wait for them.
 
 use std::collections::{HashMap, HashSet};
 use std::fs::{self, File};
 use std::io::Write;
 use std::path::{Path, PathBuf};
+use std::sync::{Mutex, RwLock};
 
-use serde::{Deserialize, Serialize};
 use sha2::{Digest, Sha256};
 
-use crate::imaging::{RgbImage32, decode_image};
-use crate::matcher::TEMPLATE_LIMITS;
+use super::{NewTemplate, Opened, PutOutcome, StoreError, TemplateMeta, io_error, is_hex_digest};
 
 /// Sub-directory of the template directory where files that are not valid templates are moved
 /// at start.
 pub const SET_ASIDE_DIR: &str = "set-aside";
 
-/// What we keep about a registered template besides its pixels.
-#[derive(Debug, Clone, PartialEq, Eq, Serialize, Deserialize)]
-pub struct TemplateMeta {
-    pub template_id: String,
-    pub width: u32,
-    pub height: u32,
-    #[serde(default)]
-    pub labels: std::collections::BTreeMap<String, String>,
-    /// Hex SHA-256 of the pixels as stored (16-bit RGB, big-endian, row-major) and the size.
-    pub content_sha256: String,
-    pub created_unix_ms: i64,
-}
-
-#[derive(Debug, thiserror::Error)]
-pub enum StoreError {
-    #[error("template directory {path}: {source}")]
-    Io {
-        path: PathBuf,
-        #[source]
-        source: std::io::Error,
-    },
-    #[error("stored template {path} is unreadable: {message}")]
-    Corrupt { path: PathBuf, message: String },
-}
-
-fn io_error(path: &Path) -> impl FnOnce(std::io::Error) -> StoreError + '_ {
-    move |source| StoreError::Io {
-        path: path.to_owned(),
-        source,
-    }
-}
-
-/// What [`TemplateStore::open`] found.
+/// What a scan of the directory at start found.
 #[derive(Debug, Default)]
-pub struct OpenedStore {
+struct Scan {
     /// Every committed template, by ID order.
-    pub metas: Vec<TemplateMeta>,
+    metas: Vec<TemplateMeta>,
     /// Files that were not valid templates, moved into [`SET_ASIDE_DIR`] (or left in place
     /// when the directory is not writable), by name.
-    pub set_aside: Vec<String>,
+    set_aside: Vec<String>,
     /// Images of interrupted registrations or replacements, removed.
-    pub orphans_removed: usize,
+    orphans_removed: usize,
 }
 
-/// The template directory on disk.
+/// The template directory on disk, with the metadata of every template in memory.
 #[derive(Debug)]
-pub struct TemplateStore {
+pub struct DirectoryStore {
     dir: PathBuf,
+    index: RwLock<HashMap<String, TemplateMeta>>,
+    /// Serialises writes: the index and the disk change together.
+    writes: Mutex<()>,
 }
 
 /// How a file in the template directory is named.
@@ -92,12 +64,6 @@ enum Entry {
     Image { key: String },
     /// Anything else.
     Foreign,
-}
-
-fn is_hex_digest(s: &str) -> bool {
-    s.len() == 64
-        && s.bytes()
-            .all(|b| b.is_ascii_digit() || (b'a'..=b'f').contains(&b))
 }
 
 fn classify(name: &str) -> Entry {
@@ -121,15 +87,31 @@ fn classify(name: &str) -> Entry {
     Entry::Foreign
 }
 
-impl TemplateStore {
+impl DirectoryStore {
     /// Opens (creating if needed) the directory and reads every committed template's metadata.
     /// Leftover temporary files and images no metadata names are removed; files that are not
     /// valid templates are logged and moved aside (never removed: an operator may want them).
     /// Fails only when the directory itself cannot be created or listed.
-    pub fn open(dir: &Path) -> Result<(Self, OpenedStore), StoreError> {
+    pub fn open(dir: &Path) -> Result<(Self, Opened), StoreError> {
+        let (store, scan) = Self::scan(dir)?;
+        let opened = Opened {
+            templates: scan.metas.len(),
+            set_aside: scan.set_aside.len(),
+        };
+        *store.index.write().expect("index lock") = scan
+            .metas
+            .into_iter()
+            .map(|m| (m.template_id.clone(), m))
+            .collect();
+        Ok((store, opened))
+    }
+
+    fn scan(dir: &Path) -> Result<(Self, Scan), StoreError> {
         fs::create_dir_all(dir).map_err(io_error(dir))?;
         let store = Self {
             dir: dir.to_owned(),
+            index: RwLock::new(HashMap::new()),
+            writes: Mutex::new(()),
         };
         let mut metas: HashMap<String, TemplateMeta> = HashMap::new();
         let mut images: Vec<(String, String)> = Vec::new();
@@ -156,7 +138,7 @@ impl TemplateStore {
                 }
             }
         }
-        let mut opened = OpenedStore::default();
+        let mut opened = Scan::default();
         // Images of set-aside metadata go with it; an image written before content addressing
         // is renamed to the name its metadata expects (its hash is checked when it is loaded).
         let set_aside_keys: HashSet<String> = foreign
@@ -239,8 +221,93 @@ impl TemplateStore {
         }
     }
 
-    pub fn dir(&self) -> &Path {
-        &self.dir
+    pub fn count(&self) -> usize {
+        self.index.read().expect("index lock").len()
+    }
+
+    pub fn get(&self, template_id: &str) -> Option<TemplateMeta> {
+        self.index
+            .read()
+            .expect("index lock")
+            .get(template_id)
+            .cloned()
+    }
+
+    /// Up to `limit` templates with IDs after `after`, in byte order.
+    pub fn list(&self, after: Option<&str>, limit: usize) -> Vec<TemplateMeta> {
+        let index = self.index.read().expect("index lock");
+        let mut ids: Vec<&String> = index
+            .keys()
+            .filter(|id| after.is_none_or(|a| id.as_str() > a))
+            .collect();
+        ids.sort();
+        ids.into_iter()
+            .take(limit)
+            .map(|id| index[id].clone())
+            .collect()
+    }
+
+    /// Metadata and image file read under the write lock, so a concurrent replacement cannot
+    /// remove the image between the two.
+    pub fn get_with_image(
+        &self,
+        template_id: &str,
+    ) -> Result<Option<(TemplateMeta, Vec<u8>)>, StoreError> {
+        let _writing = self.writes.lock().expect("write lock");
+        let Some(meta) = self.get(template_id) else {
+            return Ok(None);
+        };
+        let png = self.image_bytes(&meta)?;
+        Ok(Some((meta, png)))
+    }
+
+    /// Writes `new` unless its ID holds the same image, or another one and `replace` is false.
+    pub fn put(
+        &self,
+        new: &NewTemplate,
+        replace: bool,
+        now_unix_ms: i64,
+    ) -> Result<PutOutcome, StoreError> {
+        let _writing = self.writes.lock().expect("write lock");
+        let previous = self.get(&new.template_id);
+        if let Some(existing) = &previous {
+            if existing.content_sha256 == new.content_sha256 {
+                return Ok(PutOutcome::Unchanged(existing.clone()));
+            }
+            if !replace {
+                return Ok(PutOutcome::Conflict(existing.clone()));
+            }
+        }
+        let meta = TemplateMeta {
+            template_id: new.template_id.clone(),
+            width: new.width,
+            height: new.height,
+            labels: new.labels.clone(),
+            content_sha256: new.content_sha256.clone(),
+            created_unix_ms: previous.as_ref().map_or(now_unix_ms, |p| p.created_unix_ms),
+            updated_unix_ms: now_unix_ms,
+            version: previous.as_ref().map_or(1, |p| p.version + 1),
+        };
+        self.save(&meta, &new.png, previous.as_ref())?;
+        self.index
+            .write()
+            .expect("index lock")
+            .insert(meta.template_id.clone(), meta.clone());
+        Ok(PutOutcome::Written {
+            meta,
+            created: previous.is_none(),
+        })
+    }
+
+    /// Removes a template; `false` when it was not registered.
+    pub fn remove(&self, template_id: &str) -> Result<bool, StoreError> {
+        let _writing = self.writes.lock().expect("write lock");
+        let Some(meta) = self.get(template_id) else {
+            return Ok(false);
+        };
+        self.remove_files(&meta)?;
+        self.index.write().expect("index lock").remove(template_id);
+        Ok(true)
     }
 
     /// Whether a template can be written now: creates, syncs and removes a probe file. A
@@ -271,15 +338,14 @@ impl TemplateStore {
     /// Durably writes one template, replacing `previous` (the committed metadata of the same
     /// ID, if any). Returns only once both files are on disk; the previous image is removed
     /// after the new metadata is committed.
-    pub fn save(
+    fn save(
         &self,
         meta: &TemplateMeta,
-        image: &RgbImage32,
+        png: &[u8],
         previous: Option<&TemplateMeta>,
     ) -> Result<(), StoreError> {
-        let png = encode_png16(image);
         let image_path = self.image_path(meta);
-        self.write_atomically(&image_path, &png)?;
+        self.write_atomically(&image_path, png)?;
         let json = serde_json::to_vec_pretty(meta).expect("metadata serialises");
         self.write_atomically(&self.meta_path(&meta.template_id), &json)?;
         if let Some(previous) = previous {
@@ -292,34 +358,25 @@ impl TemplateStore {
     }
 
     /// The stored image file of a template, as it is on disk (a 16-bit RGB PNG).
-    pub fn image_bytes(&self, meta: &TemplateMeta) -> Result<Vec<u8>, StoreError> {
+    fn image_bytes(&self, meta: &TemplateMeta) -> Result<Vec<u8>, StoreError> {
         let path = self.image_path(meta);
         fs::read(&path).map_err(io_error(&path))
     }
 
     /// Reads a template's pixels back, checked against the metadata's content hash.
-    pub fn load_image(&self, meta: &TemplateMeta) -> Result<RgbImage32, StoreError> {
+    #[cfg(test)]
+    fn load_image(&self, meta: &TemplateMeta) -> Result<crate::imaging::RgbImage32, StoreError> {
         let path = self.image_path(meta);
-        let corrupt = |message: String| StoreError::Corrupt {
-            path: path.clone(),
-            message,
-        };
-        let bytes = self.image_bytes(meta)?;
-        let image = decode_image(&bytes, &path.display().to_string(), TEMPLATE_LIMITS)
-            .map_err(|e| corrupt(e.to_string()))?;
-        let found = content_sha256(&image);
-        if found != meta.content_sha256 {
-            return Err(corrupt(format!(
-                "its pixels hash to {found}, not to the registered {}",
-                meta.content_sha256
-            )));
-        }
-        Ok(image)
+        super::decode_stored(
+            &self.image_bytes(meta)?,
+            &path.display().to_string(),
+            &meta.content_sha256,
+        )
     }
 
-    /// Removes a template; metadata first, so a crash in between leaves an orphan image that the
-    /// next [`TemplateStore::open`] cleans up.
-    pub fn remove(&self, meta: &TemplateMeta) -> Result<(), StoreError> {
+    /// Removes a template's files; metadata first, so a crash in between leaves an orphan image
+    /// that the next [`DirectoryStore::open`] cleans up.
+    fn remove_files(&self, meta: &TemplateMeta) -> Result<(), StoreError> {
         let path = self.meta_path(&meta.template_id);
         match fs::remove_file(&path) {
             Ok(()) => {}
@@ -358,7 +415,7 @@ fn image_name(key: &str, content_sha256: &str) -> String {
 fn read_meta(path: &Path, key: &str) -> Result<TemplateMeta, String> {
     let text = fs::read_to_string(path).map_err(|e| e.to_string())?;
     let meta: TemplateMeta = serde_json::from_str(&text).map_err(|e| e.to_string())?;
-    if TemplateStore::key(&meta.template_id) != key {
+    if DirectoryStore::key(&meta.template_id) != key {
         return Err(format!(
             "names template `{}`, whose metadata file has another name",
             meta.template_id.escape_debug()
@@ -370,45 +427,11 @@ fn read_meta(path: &Path, key: &str) -> Result<TemplateMeta, String> {
     Ok(meta)
 }
 
-/// The pixels as 16-bit RGB samples: the stored form and what the content hash covers.
-fn to_rgb16(image: &RgbImage32) -> Vec<u16> {
-    image
-        .pixels
-        .iter()
-        .map(|&v| (v.clamp(0.0, 1.0) * 65535.0).round() as u16)
-        .collect()
-}
-
-fn encode_png16(image: &RgbImage32) -> Vec<u8> {
-    let samples = to_rgb16(image);
-    let buffer: image::ImageBuffer<image::Rgb<u16>, Vec<u16>> =
-        image::ImageBuffer::from_raw(image.width, image.height, samples).expect("sizes agree");
-    let mut png = Vec::new();
-    image::DynamicImage::ImageRgb16(buffer)
-        .write_to(&mut std::io::Cursor::new(&mut png), image::ImageFormat::Png)
-        .expect("PNG encoding into memory cannot fail");
-    png
-}
-
-/// Hex SHA-256 of an image's content (size and 16-bit samples): equal images, equal hashes,
-/// whatever format they arrived in.
-pub fn content_sha256(image: &RgbImage32) -> String {
-    let mut hasher = Sha256::new();
-    hasher.update(image.width.to_be_bytes());
-    hasher.update(image.height.to_be_bytes());
-    for sample in to_rgb16(image) {
-        hasher.update(sample.to_be_bytes());
-    }
-    hex::encode(hasher.finalize())
-}
-
-/// The metadata of every registered template, by ID; the in-memory index the service answers
-/// `GetTemplate`/`ListTemplates` from.
-pub type TemplateIndex = HashMap<String, TemplateMeta>;
-
 #[cfg(test)]
 mod tests {
     use super::*;
+    use crate::engine::store::{content_sha256, encode_png16};
+    use crate::imaging::RgbImage32;
 
     fn image(seed: u32) -> RgbImage32 {
         let pixels = (0..20 * 12 * 3)
@@ -425,6 +448,8 @@ mod tests {
             labels: [("line".to_string(), "3".to_string())].into(),
             content_sha256: content_sha256(img),
             created_unix_ms: 1,
+            updated_unix_ms: 1,
+            version: 1,
         }
     }
 
@@ -440,11 +465,13 @@ mod tests {
     #[test]
     fn saved_templates_survive_a_reopen_bit_exactly() {
         let dir = tempfile::tempdir().unwrap();
-        let (store, opened) = TemplateStore::open(dir.path()).unwrap();
+        let (store, opened) = DirectoryStore::scan(dir.path()).unwrap();
         assert!(opened.metas.is_empty());
         let img = image(1);
-        store.save(&meta("part/7 ü", &img), &img, None).unwrap();
-        let (store, opened) = TemplateStore::open(dir.path()).unwrap();
+        store
+            .save(&meta("part/7 ü", &img), &encode_png16(&img), None)
+            .unwrap();
+        let (store, opened) = DirectoryStore::scan(dir.path()).unwrap();
         assert_eq!(opened.metas, vec![meta("part/7 ü", &img)]);
         let back = store.load_image(&opened.metas[0]).unwrap();
         assert_eq!(content_sha256(&back), content_sha256(&img));
@@ -454,23 +481,31 @@ mod tests {
     #[test]
     fn a_replacement_writes_a_new_image_and_removes_the_old_one_after_the_commit() {
         let dir = tempfile::tempdir().unwrap();
-        let (store, _) = TemplateStore::open(dir.path()).unwrap();
+        let (store, _) = DirectoryStore::scan(dir.path()).unwrap();
         let (old, new) = (image(1), image(2));
-        store.save(&meta("t", &old), &old, None).unwrap();
+        store
+            .save(&meta("t", &old), &encode_png16(&old), None)
+            .unwrap();
         let old_file = store.image_path(&meta("t", &old));
         store
-            .save(&meta("t", &new), &new, Some(&meta("t", &old)))
+            .save(
+                &meta("t", &new),
+                &encode_png16(&new),
+                Some(&meta("t", &old)),
+            )
             .unwrap();
         assert!(!old_file.exists());
         assert_eq!(names(dir.path()).len(), 2);
         // A crash between the new image and the commit: the old metadata still names the old
         // image, which is still there; the new one is an orphan, removed at start.
-        let (store, _) = TemplateStore::open(dir.path()).unwrap();
-        store.save(&meta("u", &old), &old, None).unwrap();
+        let (store, _) = DirectoryStore::scan(dir.path()).unwrap();
+        store
+            .save(&meta("u", &old), &encode_png16(&old), None)
+            .unwrap();
         store
             .write_atomically(&store.image_path(&meta("u", &new)), &encode_png16(&new))
             .unwrap();
-        let (store, opened) = TemplateStore::open(dir.path()).unwrap();
+        let (store, opened) = DirectoryStore::scan(dir.path()).unwrap();
         assert_eq!(opened.orphans_removed, 1);
         let u = opened.metas.iter().find(|m| m.template_id == "u").unwrap();
         assert_eq!(store.load_image(u).unwrap().pixels, old.pixels);
@@ -479,9 +514,9 @@ mod tests {
     #[test]
     fn pixels_that_do_not_match_the_metadata_are_refused() {
         let dir = tempfile::tempdir().unwrap();
-        let (store, _) = TemplateStore::open(dir.path()).unwrap();
+        let (store, _) = DirectoryStore::scan(dir.path()).unwrap();
         let (a, b) = (image(1), image(2));
-        store.save(&meta("t", &a), &a, None).unwrap();
+        store.save(&meta("t", &a), &encode_png16(&a), None).unwrap();
         fs::write(store.image_path(&meta("t", &a)), encode_png16(&b)).unwrap();
         let err = store.load_image(&meta("t", &a)).unwrap_err();
         assert!(err.to_string().contains("hash to"), "{err}");
@@ -490,16 +525,18 @@ mod tests {
     #[test]
     fn images_stored_before_content_addressing_are_renamed() {
         let dir = tempfile::tempdir().unwrap();
-        let (store, _) = TemplateStore::open(dir.path()).unwrap();
+        let (store, _) = DirectoryStore::scan(dir.path()).unwrap();
         let img = image(4);
-        store.save(&meta("old", &img), &img, None).unwrap();
-        let key = TemplateStore::key("old");
+        store
+            .save(&meta("old", &img), &encode_png16(&img), None)
+            .unwrap();
+        let key = DirectoryStore::key("old");
         fs::rename(
             store.image_path(&meta("old", &img)),
             dir.path().join(format!("{key}.png")),
         )
         .unwrap();
-        let (store, opened) = TemplateStore::open(dir.path()).unwrap();
+        let (store, opened) = DirectoryStore::scan(dir.path()).unwrap();
         assert_eq!(
             store.load_image(&opened.metas[0]).unwrap().pixels,
             img.pixels
@@ -510,15 +547,19 @@ mod tests {
     #[test]
     fn removal_and_interrupted_writes_leave_a_clean_directory() {
         let dir = tempfile::tempdir().unwrap();
-        let (store, _) = TemplateStore::open(dir.path()).unwrap();
+        let (store, _) = DirectoryStore::scan(dir.path()).unwrap();
         let img = image(2);
-        store.save(&meta("a", &img), &img, None).unwrap();
-        store.save(&meta("b", &img), &img, None).unwrap();
-        store.remove(&meta("a", &img)).unwrap();
+        store
+            .save(&meta("a", &img), &encode_png16(&img), None)
+            .unwrap();
+        store
+            .save(&meta("b", &img), &encode_png16(&img), None)
+            .unwrap();
+        store.remove_files(&meta("a", &img)).unwrap();
         // A crash after the image was written but before the metadata, and a torn temp file.
         fs::write(store.image_path(&meta("never-acknowledged", &img)), b"x").unwrap();
         fs::write(dir.path().join(".tmp-x.json-1"), b"{").unwrap();
-        let (_, opened) = TemplateStore::open(dir.path()).unwrap();
+        let (_, opened) = DirectoryStore::scan(dir.path()).unwrap();
         assert_eq!(opened.metas.len(), 1);
         assert_eq!(opened.metas[0].template_id, "b");
         assert_eq!(names(dir.path()).len(), 2);
@@ -527,17 +568,23 @@ mod tests {
     #[test]
     fn files_that_are_not_templates_are_moved_aside_not_removed() {
         let dir = tempfile::tempdir().unwrap();
-        let (store, _) = TemplateStore::open(dir.path()).unwrap();
+        let (store, _) = DirectoryStore::scan(dir.path()).unwrap();
         let img = image(3);
-        store.save(&meta("good", &img), &img, None).unwrap();
-        store.save(&meta("damaged", &img), &img, None).unwrap();
-        store.save(&meta("imageless", &img), &img, None).unwrap();
+        store
+            .save(&meta("good", &img), &encode_png16(&img), None)
+            .unwrap();
+        store
+            .save(&meta("damaged", &img), &encode_png16(&img), None)
+            .unwrap();
+        store
+            .save(&meta("imageless", &img), &encode_png16(&img), None)
+            .unwrap();
         let damaged = store.meta_path("damaged");
         fs::write(&damaged, b"").unwrap();
         fs::remove_file(store.image_path(&meta("imageless", &img))).unwrap();
         fs::write(dir.path().join("notes.json"), br#"{"owner": "line 4"}"#).unwrap();
         fs::write(dir.path().join("photo.png"), b"not ours").unwrap();
-        let (_, opened) = TemplateStore::open(dir.path()).unwrap();
+        let (_, opened) = DirectoryStore::scan(dir.path()).unwrap();
         assert_eq!(opened.metas.len(), 1);
         assert_eq!(opened.metas[0].template_id, "good");
         assert_eq!(opened.set_aside.len(), 5, "{:?}", opened.set_aside);
@@ -550,13 +597,56 @@ mod tests {
         // What stays is exactly the good template, plus the set-aside folder.
         assert_eq!(names(dir.path()).len(), 3, "{:?}", names(dir.path()));
         // A second start finds nothing more to do.
-        let (_, again) = TemplateStore::open(dir.path()).unwrap();
+        let (_, again) = DirectoryStore::scan(dir.path()).unwrap();
         assert_eq!((again.metas.len(), again.set_aside.len()), (1, 0));
     }
 
     #[test]
-    fn content_hash_depends_on_pixels_and_size() {
-        assert_eq!(content_sha256(&image(1)), content_sha256(&image(1)));
-        assert_ne!(content_sha256(&image(1)), content_sha256(&image(2)));
+    fn put_creates_replaces_and_refuses_by_content() {
+        let dir = tempfile::tempdir().unwrap();
+        let (store, _) = DirectoryStore::open(dir.path()).unwrap();
+        let new = |img: &RgbImage32| NewTemplate {
+            template_id: "t".into(),
+            width: img.width,
+            height: img.height,
+            labels: Default::default(),
+            content_sha256: content_sha256(img),
+            png: encode_png16(img),
+        };
+        let (a, b) = (image(1), image(2));
+        let PutOutcome::Written {
+            meta: first,
+            created: true,
+        } = store.put(&new(&a), false, 10).unwrap()
+        else {
+            panic!("first put creates");
+        };
+        assert_eq!((first.version, first.created_unix_ms), (1, 10));
+        assert!(
+            matches!(store.put(&new(&a), false, 11).unwrap(), PutOutcome::Unchanged(m) if m == first)
+        );
+        assert!(
+            matches!(store.put(&new(&b), false, 12).unwrap(), PutOutcome::Conflict(m) if m == first)
+        );
+        let PutOutcome::Written {
+            meta: second,
+            created: false,
+        } = store.put(&new(&b), true, 13).unwrap()
+        else {
+            panic!("replace writes");
+        };
+        assert_eq!(
+            (
+                second.version,
+                second.created_unix_ms,
+                second.updated_unix_ms
+            ),
+            (2, 10, 13)
+        );
+        let (_, png) = store.get_with_image("t").unwrap().unwrap();
+        assert_eq!(png, encode_png16(&b));
+        assert!(store.remove("t").unwrap());
+        assert!(!store.remove("t").unwrap());
+        assert_eq!(store.count(), 0);
     }
 }

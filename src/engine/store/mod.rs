@@ -1,0 +1,443 @@
+//! The system of record for registered templates. Two stores answer the same operations:
+//! - [`directory`]: files in a local directory, owned by one replica (the default);
+//! - [`postgres`]: a PostgreSQL table shared by any number of replicas, which hear of each
+//!   other's changes through `LISTEN`/`NOTIFY` ([`StoreEvent`]) to keep their kernel caches
+//!   coherent.
+//!
+//! Both promise what the registry relies on: a write is acknowledged only once it is committed;
+//! the stored image always hashes to its metadata's `content_sha256` (checked again on load);
+//! checking an ID and writing it happen atomically, so two writers never both create one ID.
+//! Every operation is timed and its failures counted here, once for both stores.
+
+pub mod directory;
+pub mod postgres;
+
+use std::collections::BTreeMap;
+use std::path::{Path, PathBuf};
+use std::sync::Arc;
+use std::time::{Duration, Instant};
+
+use serde::{Deserialize, Serialize};
+use sha2::{Digest, Sha256};
+use tokio::sync::mpsc;
+
+use super::Metrics;
+use crate::imaging::{RgbImage32, decode_image};
+use crate::matcher::TEMPLATE_LIMITS;
+use directory::DirectoryStore;
+use postgres::{PostgresStore, PostgresUrl};
+
+/// What we keep about a registered template besides its pixels.
+#[derive(Debug, Clone, PartialEq, Eq, Serialize, Deserialize)]
+pub struct TemplateMeta {
+    pub template_id: String,
+    pub width: u32,
+    pub height: u32,
+    #[serde(default)]
+    pub labels: BTreeMap<String, String>,
+    /// Hex SHA-256 of the pixels as stored (16-bit RGB, big-endian, row-major) and the size.
+    pub content_sha256: String,
+    /// When the ID was first registered (Unix milliseconds).
+    pub created_unix_ms: i64,
+    /// When its image was last written (Unix milliseconds); 0 in metadata written before
+    /// replacements were tracked.
+    #[serde(default)]
+    pub updated_unix_ms: i64,
+    /// 1 at registration, +1 on every replacement: lets a client tell two images of one ID
+    /// apart without comparing hashes. 0 in metadata written before versions were kept.
+    #[serde(default)]
+    pub version: i64,
+}
+
+/// A template to write: its metadata as the client gave it and its image, encoded once by the
+/// registry as the stored 16-bit PNG.
+#[derive(Debug, Clone)]
+pub struct NewTemplate {
+    pub template_id: String,
+    pub width: u32,
+    pub height: u32,
+    pub labels: BTreeMap<String, String>,
+    pub content_sha256: String,
+    pub png: Vec<u8>,
+}
+
+/// What [`TemplateStore::put`] did.
+#[derive(Debug, Clone, PartialEq, Eq)]
+pub enum PutOutcome {
+    /// The ID already holds exactly this image: nothing was written.
+    Unchanged(TemplateMeta),
+    /// The ID holds another image and `replace` was not given: nothing was written.
+    Conflict(TemplateMeta),
+    /// Committed; `created` is false for a replacement.
+    Written { meta: TemplateMeta, created: bool },
+}
+
+/// A change another replica committed, announced by the store so cached kernels can follow.
+#[derive(Debug, Clone, PartialEq, Eq)]
+pub enum StoreEvent {
+    /// `template_id` was written (its new `content_sha256`; `created` unless it replaced one)
+    /// or deleted (`None`).
+    Changed {
+        template_id: String,
+        content_sha256: Option<String>,
+        created: bool,
+    },
+    /// Announcements may have been missed (the connection to the database was lost and is
+    /// back): nothing cached can be trusted.
+    Resynchronise,
+}
+
+#[derive(Debug, thiserror::Error)]
+pub enum StoreError {
+    #[error("template directory {path}: {source}")]
+    Io {
+        path: PathBuf,
+        #[source]
+        source: std::io::Error,
+    },
+    #[error("stored template {origin} is unreadable: {message}")]
+    Corrupt { origin: String, message: String },
+    /// The database cannot be reached now (down, restarting, network): worth retrying.
+    #[error(
+        "the template database is unreachable ({0}); templates already cached keep matching, registrations and uncached templates work again once it is back"
+    )]
+    Unavailable(String),
+    /// The database answered with an error that retrying will not fix (schema, permissions).
+    #[error("template database: {0}")]
+    Database(String),
+}
+
+/// Where templates are kept, as configured (`template_store`, or the older `template_dir`).
+#[derive(Debug, Clone)]
+pub enum StoreLocation {
+    Directory(PathBuf),
+    Postgres(Box<PostgresUrl>),
+}
+
+impl StoreLocation {
+    /// `postgres://…` or `postgresql://…` is a database; anything else a directory path.
+    pub fn parse(setting: &str) -> Result<Self, String> {
+        if setting.starts_with("postgres://") || setting.starts_with("postgresql://") {
+            Ok(Self::Postgres(Box::new(PostgresUrl::parse(setting)?)))
+        } else if setting.is_empty() {
+            Err("an empty template store: give a directory or a postgres:// URL".into())
+        } else {
+            Ok(Self::Directory(PathBuf::from(setting)))
+        }
+    }
+}
+
+impl std::fmt::Display for StoreLocation {
+    /// For logs: the database URL without its password.
+    fn fmt(&self, f: &mut std::fmt::Formatter<'_>) -> std::fmt::Result {
+        match self {
+            Self::Directory(dir) => write!(f, "{}", dir.display()),
+            Self::Postgres(url) => write!(f, "{url}"),
+        }
+    }
+}
+
+/// How a store was opened, for the start-up log and metrics.
+#[derive(Debug, Default)]
+pub struct Opened {
+    pub templates: usize,
+    /// Directory store: files that were not valid templates, moved aside.
+    pub set_aside: usize,
+}
+
+/// The configured store, with its operations timed and counted in [`Metrics`].
+pub struct TemplateStore {
+    backend: Backend,
+    metrics: Metrics,
+}
+
+enum Backend {
+    Directory(Arc<DirectoryStore>),
+    Postgres(PostgresStore),
+}
+
+impl TemplateStore {
+    /// Opens the store: a directory is created and scanned; a database is connected to, its
+    /// schema migrated and its change channel listened to (fails if it cannot be reached: the
+    /// caller decides whether to retry).
+    pub async fn open(
+        location: &StoreLocation,
+        metrics: &Metrics,
+    ) -> Result<(Self, Opened), StoreError> {
+        let (backend, opened) = match location {
+            StoreLocation::Directory(dir) => {
+                let dir = dir.clone();
+                let (store, opened) = blocking(move || DirectoryStore::open(&dir)).await??;
+                (Backend::Directory(Arc::new(store)), opened)
+            }
+            StoreLocation::Postgres(url) => {
+                let (store, opened) = PostgresStore::open(url, metrics.clone()).await?;
+                (Backend::Postgres(store), opened)
+            }
+        };
+        let store = Self {
+            backend,
+            metrics: metrics.clone(),
+        };
+        Ok((store, opened))
+    }
+
+    /// Announcements of other replicas' changes; `None` for a store no one else writes (a
+    /// directory) and after the first call.
+    pub fn take_events(&self) -> Option<mpsc::UnboundedReceiver<StoreEvent>> {
+        match &self.backend {
+            Backend::Directory(_) => None,
+            Backend::Postgres(store) => store.take_events(),
+        }
+    }
+
+    /// How long the store may fail [`TemplateStore::check`] before health reports NOT_SERVING:
+    /// a database gets `database_grace` to come back (cached templates keep matching
+    /// meanwhile); a directory that cannot be written is a fault of the deployment, reported
+    /// at once.
+    pub fn health_grace(&self, database_grace: Duration) -> Duration {
+        match &self.backend {
+            Backend::Directory(_) => Duration::ZERO,
+            Backend::Postgres(_) => database_grace,
+        }
+    }
+
+    /// Whether registrations could be written now, and how many templates there are.
+    pub async fn check(&self) -> Result<usize, StoreError> {
+        self.timed("check", async {
+            match &self.backend {
+                Backend::Directory(store) => {
+                    let store = store.clone();
+                    blocking(move || store.check_writable().map(|()| store.count())).await?
+                }
+                Backend::Postgres(store) => store.count().await,
+            }
+        })
+        .await
+    }
+
+    pub async fn get(&self, template_id: &str) -> Result<Option<TemplateMeta>, StoreError> {
+        self.timed("get", async {
+            match &self.backend {
+                Backend::Directory(store) => Ok(store.get(template_id)),
+                Backend::Postgres(store) => store.get(template_id).await,
+            }
+        })
+        .await
+    }
+
+    /// A template's metadata and stored image file (a 16-bit RGB PNG whose pixels hash to the
+    /// metadata's `content_sha256`), read together so a concurrent replacement cannot pair one
+    /// with the other's.
+    pub async fn get_with_image(
+        &self,
+        template_id: &str,
+    ) -> Result<Option<(TemplateMeta, Vec<u8>)>, StoreError> {
+        self.timed("get_with_image", async {
+            match &self.backend {
+                Backend::Directory(store) => {
+                    let (store, id) = (store.clone(), template_id.to_owned());
+                    blocking(move || store.get_with_image(&id)).await?
+                }
+                Backend::Postgres(store) => store.get_with_image(template_id).await,
+            }
+        })
+        .await
+    }
+
+    /// A template's metadata and pixels, checked against its content hash: what a kernel is
+    /// encoded from.
+    pub async fn load(
+        &self,
+        template_id: &str,
+    ) -> Result<Option<(TemplateMeta, RgbImage32)>, StoreError> {
+        let found = self.get_with_image(template_id).await?;
+        let Some((meta, png)) = found else {
+            return Ok(None);
+        };
+        let origin = format!("`{}`", meta.template_id.escape_debug());
+        let image = blocking(move || {
+            decode_stored(&png, &origin, &meta.content_sha256).map(|image| (meta, image))
+        })
+        .await??;
+        Ok(Some(image))
+    }
+
+    /// Up to `limit` templates with IDs after `after`, in byte order of the ID.
+    pub async fn list(
+        &self,
+        after: Option<&str>,
+        limit: usize,
+    ) -> Result<Vec<TemplateMeta>, StoreError> {
+        self.timed("list", async {
+            match &self.backend {
+                Backend::Directory(store) => Ok(store.list(after, limit)),
+                Backend::Postgres(store) => store.list(after, limit).await,
+            }
+        })
+        .await
+    }
+
+    /// Writes a template unless the ID holds the same image, or another one and `replace` is
+    /// false; the check and the write are one atomic step.
+    pub async fn put(&self, new: NewTemplate, replace: bool) -> Result<PutOutcome, StoreError> {
+        self.timed("put", async {
+            match &self.backend {
+                Backend::Directory(store) => {
+                    let store = store.clone();
+                    blocking(move || store.put(&new, replace, now_unix_ms())).await?
+                }
+                Backend::Postgres(store) => store.put(&new, replace).await,
+            }
+        })
+        .await
+    }
+
+    /// Removes a template; `false` when it was not registered.
+    pub async fn remove(&self, template_id: &str) -> Result<bool, StoreError> {
+        self.timed("remove", async {
+            match &self.backend {
+                Backend::Directory(store) => {
+                    let (store, id) = (store.clone(), template_id.to_owned());
+                    blocking(move || store.remove(&id)).await?
+                }
+                Backend::Postgres(store) => store.remove(template_id).await,
+            }
+        })
+        .await
+    }
+
+    async fn timed<T>(
+        &self,
+        operation: &str,
+        work: impl Future<Output = Result<T, StoreError>>,
+    ) -> Result<T, StoreError> {
+        let started = Instant::now();
+        let result = work.await;
+        self.metrics
+            .store_seconds
+            .with_label_values(&[operation])
+            .observe(started.elapsed().as_secs_f64());
+        if result.is_err() {
+            self.metrics
+                .store_errors
+                .with_label_values(&[operation])
+                .inc();
+        }
+        result
+    }
+}
+
+/// Runs file and hashing work off the async runtime's threads.
+async fn blocking<T: Send + 'static>(
+    work: impl FnOnce() -> T + Send + 'static,
+) -> Result<T, StoreError> {
+    tokio::task::spawn_blocking(work)
+        .await
+        .map_err(|e| StoreError::Database(format!("background task failed: {e}")))
+}
+
+pub(crate) fn now_unix_ms() -> i64 {
+    std::time::SystemTime::now()
+        .duration_since(std::time::UNIX_EPOCH)
+        .map_or(0, |d| d.as_millis() as i64)
+}
+
+/// Decodes a stored image and checks it against the hash it was registered with; `origin`
+/// names it in errors (a file, or a template ID in the database).
+pub fn decode_stored(
+    png: &[u8],
+    origin: &str,
+    content_sha256: &str,
+) -> Result<RgbImage32, StoreError> {
+    let corrupt = |message: String| StoreError::Corrupt {
+        origin: origin.to_owned(),
+        message,
+    };
+    let image = decode_image(png, origin, TEMPLATE_LIMITS).map_err(|e| corrupt(e.to_string()))?;
+    let found = self::content_sha256(&image);
+    if found != content_sha256 {
+        return Err(corrupt(format!(
+            "its pixels hash to {found}, not to the registered {content_sha256}"
+        )));
+    }
+    Ok(image)
+}
+
+/// The pixels as 16-bit RGB samples: the stored form and what the content hash covers.
+fn to_rgb16(image: &RgbImage32) -> Vec<u16> {
+    image
+        .pixels
+        .iter()
+        .map(|&v| (v.clamp(0.0, 1.0) * 65535.0).round() as u16)
+        .collect()
+}
+
+/// The stored form of a template: a 16-bit RGB PNG, lossless for 8- and 16-bit inputs.
+pub fn encode_png16(image: &RgbImage32) -> Vec<u8> {
+    let samples = to_rgb16(image);
+    let buffer: image::ImageBuffer<image::Rgb<u16>, Vec<u16>> =
+        image::ImageBuffer::from_raw(image.width, image.height, samples).expect("sizes agree");
+    let mut png = Vec::new();
+    image::DynamicImage::ImageRgb16(buffer)
+        .write_to(&mut std::io::Cursor::new(&mut png), image::ImageFormat::Png)
+        .expect("PNG encoding into memory cannot fail");
+    png
+}
+
+/// Hex SHA-256 of an image's content (size and 16-bit samples): equal images, equal hashes,
+/// whatever format they arrived in.
+pub fn content_sha256(image: &RgbImage32) -> String {
+    let mut hasher = Sha256::new();
+    hasher.update(image.width.to_be_bytes());
+    hasher.update(image.height.to_be_bytes());
+    for sample in to_rgb16(image) {
+        hasher.update(sample.to_be_bytes());
+    }
+    hex::encode(hasher.finalize())
+}
+
+fn is_hex_digest(s: &str) -> bool {
+    s.len() == 64
+        && s.bytes()
+            .all(|b| b.is_ascii_digit() || (b'a'..=b'f').contains(&b))
+}
+
+/// For error messages that name a directory.
+fn io_error(path: &Path) -> impl FnOnce(std::io::Error) -> StoreError + '_ {
+    move |source| StoreError::Io {
+        path: path.to_owned(),
+        source,
+    }
+}
+
+#[cfg(test)]
+mod tests {
+    use super::*;
+
+    #[test]
+    fn locations_are_told_apart_by_scheme() {
+        assert!(matches!(
+            StoreLocation::parse("./data/templates"),
+            Ok(StoreLocation::Directory(_))
+        ));
+        let url = StoreLocation::parse("postgres://app:s3cret@db:5433/posematch").unwrap();
+        assert!(matches!(url, StoreLocation::Postgres(_)));
+        let shown = url.to_string();
+        assert!(!shown.contains("s3cret"), "{shown}");
+        assert!(
+            shown.contains("db:5433") && shown.contains("posematch"),
+            "{shown}"
+        );
+        assert!(StoreLocation::parse("postgres://db/x?sslmode=nonsense").is_err());
+        assert!(StoreLocation::parse("").is_err());
+    }
+
+    #[test]
+    fn content_hash_depends_on_pixels_and_size() {
+        let a = RgbImage32::new(2, 1, vec![0.0, 0.5, 1.0, 0.25, 0.75, 0.0]);
+        let b = RgbImage32::new(1, 2, a.pixels.clone());
+        assert_eq!(content_sha256(&a), content_sha256(&a.clone()));
+        assert_ne!(content_sha256(&a), content_sha256(&b));
+    }
+}
