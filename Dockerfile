@@ -10,7 +10,7 @@ COPY Cargo.toml Cargo.lock build.rs ./
 COPY proto proto
 RUN mkdir -p src benches \
  && echo 'fn main() {}' > src/main.rs && echo '' > src/lib.rs \
- && for b in network load templates verification; do echo 'fn main() {}' > benches/$b.rs; done \
+ && for b in network load templates verification frames store; do echo 'fn main() {}' > benches/$b.rs; done \
  && cargo build --release --locked --bin posematch \
  && rm -rf src benches
 COPY src src

@@ -705,6 +705,15 @@ async fn health_turns_serving_once_the_model_is_loaded() {
     };
     let status = health.check(check("")).await.unwrap().into_inner().status;
     assert_eq!(status, ServingStatus::NotServing as i32);
+    // Loading is progress: a liveness probe must not restart a replica for it.
+    let liveness = posematch::grpc::LIVENESS_SERVICE;
+    let status = health
+        .check(check(liveness))
+        .await
+        .unwrap()
+        .into_inner()
+        .status;
+    assert_eq!(status, ServingStatus::Serving as i32);
     let early = PoseMatcherClient::new(channel.clone())
         .get_template(proto::GetTemplateRequest {
             template_id: "x".into(),

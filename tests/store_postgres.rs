@@ -92,6 +92,10 @@ async fn within<F: Future<Output = bool>>(
 }
 
 async fn health(addr: std::net::SocketAddr) -> i32 {
+    health_of(addr, "").await
+}
+
+async fn health_of(addr: std::net::SocketAddr, service: &str) -> i32 {
     let channel = Channel::from_shared(format!("http://{addr}"))
         .unwrap()
         .connect()
@@ -99,7 +103,7 @@ async fn health(addr: std::net::SocketAddr) -> i32 {
         .expect("health client connects");
     tonic_health::pb::health_client::HealthClient::new(channel)
         .check(tonic_health::pb::HealthCheckRequest {
-            service: String::new(),
+            service: service.into(),
         })
         .await
         .expect("health answers")

@@ -33,6 +33,12 @@ pub mod proto {
         tonic::include_file_descriptor_set!("posematch_descriptor");
 }
 
+/// The health service name a liveness probe asks: SERVING while the process makes progress
+/// (from the start; NOT_SERVING only once the model thread has ended), where the whole server's
+/// status (`""`, for readiness) also needs the model loaded and the template store working. A
+/// database outage takes replicas out of rotation without restarting them.
+pub const LIVENESS_SERVICE: &str = "liveness";
+
 /// Builds the model; runs on a blocking thread after the ports are bound.
 pub type ModelLoader = Box<dyn FnOnce() -> Result<Matcher, String> + Send>;
 
@@ -111,6 +117,9 @@ impl RunningServer {
             .set_service_status("", tonic_health::ServingStatus::NotServing)
             .await;
         health
+            .set_service_status(LIVENESS_SERVICE, tonic_health::ServingStatus::Serving)
+            .await;
+        health
             .set_not_serving::<proto::pose_matcher_server::PoseMatcherServer<api::Api>>()
             .await;
         let reflection_v1 = tonic_reflection::server::Builder::configure()
@@ -179,10 +188,11 @@ impl RunningServer {
                 .and_then(|r| r);
             match (opened, loaded) {
                 (Ok((store, templates)), Ok(matcher)) => {
-                    tracing::info!("model loaded");
                     let built =
                         Arc::new(Engine::start(&config, store, templates, matcher, metrics));
                     let _ = engine.set(built.clone());
+                    // Logged once requests can be answered (tests wait for this line).
+                    tracing::info!("model loaded");
                     report_health(built, health, move || {
                         let _ = ready_tx.send(Some(Ok(())));
                     })
@@ -355,6 +365,9 @@ async fn report_health(
             reported();
         }
         if !alive {
+            health
+                .set_service_status(LIVENESS_SERVICE, tonic_health::ServingStatus::NotServing)
+                .await;
             return;
         }
         let recheck = if failing_since.is_some() {

@@ -151,34 +151,6 @@ impl PgCluster {
         );
     }
 
-    /// Runs SQL through `psql` if it is installed (for setting up figures), else None.
-    pub fn psql(&self, sql: &str) -> Option<String> {
-        let psql = [self.bin.join("psql"), PathBuf::from("/usr/bin/psql")]
-            .into_iter()
-            .find(|p| p.is_file())?;
-        let output = Command::new(psql)
-            .args([
-                "-X",
-                "-q",
-                "-t",
-                "-A",
-                "-v",
-                "ON_ERROR_STOP=1",
-                "-d",
-                &self.url(),
-                "-c",
-                sql,
-            ])
-            .output()
-            .ok()?;
-        assert!(
-            output.status.success(),
-            "psql: {}",
-            String::from_utf8_lossy(&output.stderr)
-        );
-        Some(String::from_utf8_lossy(&output.stdout).into_owned())
-    }
-
     pub fn dir(&self) -> &Path {
         self.dir.path()
     }
