@@ -18,6 +18,8 @@ import torch.nn.functional as F
 
 # Scale ranges of the paper's levels (src/synth `Level::scale_range`).
 LEVELS = {"S1": (1.0, 1.0), "S1.5": (0.8, 1.5), "S2": (0.6, 2.0), "S2.5": (0.5, 2.5)}
+# What the scale heads can express (`sigmoid * 1.5 + 0.5`; src/model/tdcm.rs HEAD_SCALE_*).
+HEAD_SCALES = (0.5, 2.0)
 DEFAULT_MIN_STRUCTURE = 6.0
 # src/train/labels.rs
 SIGMA_FRACTION = 1.0 / 6.0
@@ -98,9 +100,18 @@ def _photo_coords(truth_xy, angle_deg, centre, i, j):
 
 
 def cut_pairs(bank, batch, level="S1.5", template_size=(36, 36), search_side=224,
-              min_structure=DEFAULT_MIN_STRUCTURE, gen=None, max_rounds=50):
+              min_structure=DEFAULT_MIN_STRUCTURE, gen=None, max_rounds=50,
+              elongated_share=0.0, aspect_max=2.5):
     """`batch` pairs from `bank` (see the module doc). `level` is one level name or a list of
-    them (each pair draws one)."""
+    them (each pair draws one).
+
+    `elongated_share` of the pairs show an elongated part instead: the registered template is
+    squeezed onto the square grid while the object keeps its aspect, so on the network's grid
+    a 28x52 part has sx 0.73 and sy 1.36 (the matcher resizes frames isotropically, by
+    36/sqrt(w*h)). Such a pair draws the geometric mean sqrt(sx*sy) from the level's range and
+    the aspect sx/sy log-uniform in [1/aspect_max, aspect_max], within what the scale heads can
+    express (HEAD_SCALES). The level ranges alone reach sx/sy 1.9 only at both extremes at once,
+    and never sx 0.73 at S1.5."""
     device = bank.device
     tw, th = template_size
     side = float(search_side)
@@ -116,9 +127,18 @@ def cut_pairs(bank, batch, level="S1.5", template_size=(36, 36), search_side=224
         rng = ranges[torch.randint(len(levels), (m,), generator=gen, device=device)]
         sx = rng[:, 0] + (rng[:, 1] - rng[:, 0]) * torch.rand(m, generator=gen, device=device)
         sy = rng[:, 0] + (rng[:, 1] - rng[:, 0]) * torch.rand(m, generator=gen, device=device)
+        elongated = torch.rand(m, generator=gen, device=device) < elongated_share
+        if elongated.any():
+            mean = torch.exp(torch.log(rng[:, 0]) + (torch.log(rng[:, 1]) - torch.log(rng[:, 0]))
+                             * torch.rand(m, generator=gen, device=device))
+            aspect = torch.exp(_uniform(m, -math.log(aspect_max), math.log(aspect_max), gen, device))
+            sx = torch.where(elongated, mean * aspect.sqrt(), sx)
+            sy = torch.where(elongated, mean / aspect.sqrt(), sy)
         bw = torch.round(sx * tw).clamp(min=2.0)
         bh = torch.round(sy * th).clamp(min=2.0)
         ok = (bw + 2 <= pw) & (bh + 2 <= ph)
+        lo, hi = HEAD_SCALES
+        ok &= ~elongated | ((bw >= lo * tw) & (bw <= hi * tw) & (bh >= lo * th) & (bh <= hi * th))
         angle = _uniform(m, -180.0, 180.0, gen, device)
         a = torch.deg2rad(angle)
         ex = (bw * torch.cos(a).abs() + bh * torch.sin(a).abs()) / 2

@@ -84,6 +84,10 @@ def parse_args(argv=None):
     a.add_argument("--batch", type=int, default=64)
     a.add_argument("--search-size", type=int, default=224)
     a.add_argument("--level", default="S1.5", help="level or comma list (S1, S1.5, S2, S2.5)")
+    a.add_argument("--elongated-share", type=float, default=0.0,
+                   help="share of pairs showing elongated parts (aspect log-uniform up to --aspect-max; pairs.cut_pairs)")
+    a.add_argument("--aspect-max", type=float, default=2.5,
+                   help="largest sx/sy (and sy/sx) of the elongated pairs")
     a.add_argument("--lr", type=float, default=1e-3)
     a.add_argument("--weight-decay", type=float, default=0.05)
     a.add_argument("--warmup", type=int, default=500)
@@ -173,7 +177,8 @@ def train(args):
     held_gen.manual_seed(12345)
     with torch.no_grad():
         held = P.cut_pairs(held_bank, args.validation_pairs, levels, search_side=args.search_size,
-                          gen=held_gen)
+                          gen=held_gen, elongated_share=args.elongated_share,
+                          aspect_max=args.aspect_max)
 
     def check():
         model.eval()
@@ -207,7 +212,9 @@ def train(args):
             group["lr"] = lr
         if fixed is None:
             with torch.no_grad():
-                batch = P.cut_pairs(bank, args.batch, levels, search_side=args.search_size, gen=gen)
+                batch = P.cut_pairs(bank, args.batch, levels, search_side=args.search_size, gen=gen,
+                                    elongated_share=args.elongated_share,
+                                    aspect_max=args.aspect_max)
                 searches = P.jitter(batch.searches, gen)
                 labels = P.render_labels(batch.truth, args.search_size, args.search_size)
                 templates = normalise(batch.templates)

@@ -86,6 +86,27 @@ def test_templates_match_pils_antialiased_resize(bank):
         assert P.structure(pairs.templates[k:k + 1]).item() >= P.DEFAULT_MIN_STRUCTURE
 
 
+def test_elongated_pairs_reach_the_aspects_of_real_parts(bank):
+    _, b = bank
+    gen = torch.Generator().manual_seed(5)
+    plain = P.cut_pairs(b, 64, "S1.5", search_side=160, gen=gen)
+    elongated = P.cut_pairs(b, 64, "S1.5", search_side=160, gen=gen, elongated_share=1.0,
+                            aspect_max=2.5)
+    ratio = lambda pairs: pairs.truth[:, 3] / pairs.truth[:, 4]
+    # The level alone: both axes in 0.8..1.5, aspect at most 1.875.
+    assert (plain.truth[:, 3:5] >= 0.79).all() and (ratio(plain).max() < 1.9)
+    # A 28x52 part on the grid (sx 0.73, sy 1.36) and its transpose are now drawn.
+    r = ratio(elongated)
+    assert (r < 0.6).any() and (r > 1.7).any(), r
+    assert (elongated.truth[:, 3:5] >= 0.5 - 1e-6).all() and (elongated.truth[:, 3:5] <= 2.0 + 1e-6).all()
+    mean = (elongated.truth[:, 3] * elongated.truth[:, 4]).sqrt()
+    assert (mean > 0.78).all() and (mean < 1.52).all()
+    # Boxes and truth still agree, and the templates are the boxes squeezed onto the grid.
+    assert torch.allclose(elongated.truth[:, 3], elongated.boxes[:, 2] / 36)
+    assert torch.allclose(elongated.truth[:, 4], elongated.boxes[:, 3] / 36)
+    assert elongated.templates.shape[-2:] == (36, 36)
+
+
 def test_labels_follow_the_pose():
     truth = torch.tensor([[20.0, 30.0, -120.0, 1.3, 0.8], [32.0, 32.0, 90.0, 2.0, 1.0]])
     maps = P.render_labels(truth, 64, 64)
