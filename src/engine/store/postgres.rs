@@ -576,9 +576,11 @@ fn db_error(e: tokio_postgres::Error) -> StoreError {
                 .contains(code)
         }
     };
-    let message = match e.as_db_error() {
-        Some(db) => db.message().to_owned(),
-        None => e.to_string(),
+    let message = match (e.as_db_error(), std::error::Error::source(&e)) {
+        (Some(db), _) => db.message().to_owned(),
+        // "error connecting to server: Connection refused (os error 111)", not only the first half.
+        (None, Some(cause)) => format!("{e}: {cause}"),
+        (None, None) => e.to_string(),
     };
     if transient {
         StoreError::Unavailable(message)
