@@ -457,3 +457,29 @@ async fn a_database_restart_is_survived() {
     a.shutdown(Duration::from_secs(5)).await;
     b.shutdown(Duration::from_secs(5)).await;
 }
+
+/// A database that refuses us for good (here: it does not exist) fails the start with the
+/// database's own words; one that is merely down is waited for (`a_database_restart_is_survived`
+/// covers an outage while serving).
+#[tokio::test(flavor = "multi_thread", worker_threads = 2)]
+async fn a_database_that_refuses_fails_the_start_with_its_message() {
+    let Some(cluster) = PgCluster::start() else {
+        return;
+    };
+    let unused = tempfile::tempdir().unwrap();
+    let url = format!(
+        "{}/no_such_database",
+        cluster.url().rsplit_once('/').unwrap().0
+    );
+    let settings = settings(unused.path(), &[("template_store", url.as_str())]);
+    let mut server = RunningServer::start(&settings, untrained_model())
+        .await
+        .expect("the ports bind before the store is opened");
+    let message = tokio::time::timeout(Duration::from_secs(30), server.ready())
+        .await
+        .expect("the start fails, not waits")
+        .unwrap_err();
+    assert!(message.contains("no_such_database"), "{message}");
+    assert!(!message.contains("unreachable"), "{message}");
+    println!("{message}");
+}
