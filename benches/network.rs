@@ -112,6 +112,27 @@ fn benches(c: &mut Criterion) {
             },
         );
     }
+    // What a search runs: the pose heads only where the score reaches the default candidate
+    // threshold's half (see `Matcher::run_network`).
+    {
+        let images = Tensor::<4>::random(
+            [1, 3, 224, 224],
+            burn::tensor::Distribution::Normal(0.0, 1.0),
+            &device,
+        );
+        let least = 0.5 * posematch::matcher::MatchOptions::default().candidate_threshold;
+        group.throughput(Throughput::Elements(1));
+        group.bench_function("search_224_batch_1_pose_heads_at_peaks", |b| {
+            b.iter(|| {
+                let maps = matcher.network().forward_for_peaks(
+                    images.clone(),
+                    encoded.kernel.clone(),
+                    posematch::model::PoseHeads::WhereScoreAtLeast(least),
+                );
+                maps.stacked.into_data()
+            })
+        });
+    }
     // Decode alone: peaks, sub-pixel centres and parameters from one 224x224 set of maps.
     let images = Tensor::<4>::random(
         [1, 3, 224, 224],

@@ -16,7 +16,7 @@ use burn::prelude::*;
 use crate::geometry::Pose;
 use crate::imaging::{GrayImage32, ImageLimits};
 use crate::imaging::{InputConvention, RgbImage32, resize_rgb, to_network_input};
-use crate::model::{InferenceNetwork, TEMPLATE_GRID, Tdcm};
+use crate::model::{InferenceNetwork, PoseHeads, TEMPLATE_GRID, Tdcm};
 pub use options::{AngleRange, MatchOptions, Method, ScaleRange, ValidOptions};
 use peaks::{MapPlanes, find_peaks, peak_at};
 use plan::{MAX_NETWORK_PIXELS, MIN_INPUT_SIDE, ScalePass, Tile};
@@ -314,7 +314,16 @@ impl Matcher {
                 .collect(),
             0,
         );
-        let stacked = self.network.forward(images, kernels).stacked; // [b, 5, H, W]
+        // The decode reads the pose maps at peaks above its threshold (and a peak's neighbours
+        // above half the peak): the pose heads are needed only there.
+        let least = batch
+            .iter()
+            .map(|p| peak_threshold_and_limit(jobs[p.job].options).0)
+            .fold(f32::INFINITY, f32::min);
+        let stacked = self
+            .network
+            .forward_for_peaks(images, kernels, PoseHeads::WhereScoreAtLeast(0.5 * least))
+            .stacked; // [b, 5, H, W]
         let [b, _, h, w] = stacked.dims();
         let values: Vec<f32> = stacked
             .into_data()
@@ -325,6 +334,20 @@ impl Matcher {
             .take(b)
             .map(<[f32]>::to_vec)
             .collect()
+    }
+}
+
+/// The least heatmap value of a peak the decode considers, and how many peaks it keeps. With
+/// verification every peak above the low candidate threshold is worth a look (up to the
+/// budget); without it the heatmap value is the answer's score.
+fn peak_threshold_and_limit(options: &ValidOptions) -> (f32, usize) {
+    if options.refine {
+        (options.candidate_threshold, options.candidate_budget())
+    } else {
+        (
+            options.effective_min_score(),
+            4 * options.max_instances + 16,
+        )
     }
 }
 
@@ -444,17 +467,7 @@ fn piece_poses(piece: &Piece, maps: &[f32], job: &MatchJob) -> Vec<Pose> {
         scale_x: &maps[3 * n..4 * n],
         scale_y: &maps[4 * n..5 * n],
     };
-    // With verification every peak above the low candidate threshold is worth a look (up to
-    // the budget); without it the heatmap value is the answer's score.
-    let options = job.options;
-    let (threshold, limit) = if options.refine {
-        (options.candidate_threshold, options.candidate_budget())
-    } else {
-        (
-            options.effective_min_score(),
-            4 * options.max_instances + 16,
-        )
-    };
+    let (threshold, limit) = peak_threshold_and_limit(job.options);
     let pass = piece.pass;
     let tile = piece.tile;
     let grid = TEMPLATE_GRID as f32;

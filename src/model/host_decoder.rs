@@ -199,9 +199,25 @@ fn pixel_shuffle(input: &[f32], width: usize, channels_in: usize) -> Vec<f32> {
     out
 }
 
+/// Where the pose heads (sign, cos, scale_x, scale_y) are evaluated. The score head runs at
+/// every pixel; a search reads the pose heads only at peaks of the score (and their
+/// neighbours above half the peak), so it may skip them elsewhere: four fifths of the heads'
+/// 3x3 convolution, about a fifth of the network's multiply-adds.
+#[derive(Debug, Clone, Copy, PartialEq)]
+pub enum PoseHeads {
+    /// Every pixel: the complete maps (what the parity fixtures compare).
+    Everywhere,
+    /// Only where the score is at least this; elsewhere the four pose maps hold NaN.
+    WhereScoreAtLeast(f32),
+}
+
 /// The five heads: a 3x3 conv 24 → 5·12, ReLU, per-head 1x1 conv 12 → 1, output functions.
 struct HeadsCpu {
     hidden: Conv3x3,
+    /// The same 3x3 convolution split: the score head's 12 channels, and the other four
+    /// heads' 48 (for [`PoseHeads::WhereScoreAtLeast`]).
+    score_hidden: Conv3x3,
+    pose_hidden: Conv3x3,
     /// `[5][12]` weights and `[5]` biases of the 1x1 convolutions.
     output_weight: Vec<[f32; 12]>,
     output_bias: Vec<f32>,
@@ -211,7 +227,14 @@ impl HeadsCpu {
     fn new(heads: &Heads) -> Self {
         let all = heads.all();
         let (weight, bias) = heads.stacked_hidden();
-        let hidden = Conv3x3::from_parts(weight, Some(bias), None);
+        let hidden = Conv3x3::from_parts(weight.clone(), Some(bias.clone()), None);
+        let score_hidden = Conv3x3::from_parts(
+            weight.clone().narrow(0, 0, 12),
+            Some(bias.clone().narrow(0, 0, 12)),
+            None,
+        );
+        let pose_hidden =
+            Conv3x3::from_parts(weight.narrow(0, 12, 48), Some(bias.narrow(0, 12, 48)), None);
         let mut output_weight = Vec::new();
         let mut output_bias = Vec::new();
         for h in all {
@@ -221,15 +244,30 @@ impl HeadsCpu {
         }
         Self {
             hidden,
+            score_hidden,
+            pose_hidden,
             output_weight,
             output_bias,
         }
     }
 
+    /// Head `head`'s output from its 12 hidden values (before ReLU).
+    fn output(&self, head: usize, hidden: &[f32]) -> f32 {
+        let mut logit = self.output_bias[head];
+        for (v, w) in hidden.iter().zip(&self.output_weight[head]) {
+            logit += v.max(0.0) * w;
+        }
+        match head {
+            2 => logit.tanh(),
+            0 | 1 => sigmoid(logit),
+            _ => sigmoid(logit) * (HEAD_SCALE_MAX - HEAD_SCALE_MIN) + HEAD_SCALE_MIN,
+        }
+    }
+
     /// `[h * w, 24]` → `[5, h * w]` planes (score, sign, cos, scale_x, scale_y).
-    fn forward(&self, input: &[f32], height: usize, width: usize) -> Vec<f32> {
+    fn forward(&self, input: &[f32], height: usize, width: usize, pose: PoseHeads) -> Vec<f32> {
         let rows = self.hidden.chunk_rows(width);
-        let hidden = self.hidden.cout;
+        let k = 9 * self.hidden.cin;
         let mut pixel_major = vec![0f32; height * width * 5];
         pixel_major
             .par_chunks_mut(rows * width * 5)
@@ -237,36 +275,56 @@ impl HeadsCpu {
             .for_each_init(
                 || {
                     (
-                        vec![0f32; rows * width * 9 * self.hidden.cin],
-                        vec![0f32; rows * width * hidden],
+                        vec![0f32; rows * width * k],
+                        vec![0f32; rows * width * self.hidden.cout],
+                        Vec::<f32>::new(),
+                        Vec::<usize>::new(),
                     )
                 },
-                |(patches, features), (chunk, out)| {
+                |(patches, features, gathered, selected), (chunk, out)| {
                     let y0 = chunk * rows;
                     let n = (height - y0).min(rows);
                     self.hidden.im2col(input, height, width, y0, n, patches);
-                    self.hidden.multiply(patches, n * width, features);
-                    for (f, o) in features
-                        .chunks_exact(hidden)
-                        .zip(out.chunks_exact_mut(5))
-                        .take(n * width)
-                    {
-                        for head in 0..5 {
-                            let mut logit = self.output_bias[head];
-                            for (v, w) in f[head * 12..head * 12 + 12]
-                                .iter()
-                                .zip(&self.output_weight[head])
-                            {
-                                logit += v.max(0.0) * w;
-                            }
-                            o[head] = match head {
-                                2 => logit.tanh(),
-                                0 | 1 => sigmoid(logit),
-                                _ => {
-                                    sigmoid(logit) * (HEAD_SCALE_MAX - HEAD_SCALE_MIN)
-                                        + HEAD_SCALE_MIN
+                    let out = &mut out[..n * width * 5];
+                    match pose {
+                        PoseHeads::Everywhere => {
+                            self.hidden.multiply(patches, n * width, features);
+                            for (f, o) in features.chunks_exact(60).zip(out.chunks_exact_mut(5)) {
+                                for (head, value) in o.iter_mut().enumerate() {
+                                    *value = self.output(head, &f[head * 12..head * 12 + 12]);
                                 }
-                            };
+                            }
+                        }
+                        PoseHeads::WhereScoreAtLeast(least) => {
+                            self.score_hidden.multiply(patches, n * width, features);
+                            selected.clear();
+                            for (p, (f, o)) in features
+                                .chunks_exact(12)
+                                .zip(out.chunks_exact_mut(5))
+                                .enumerate()
+                            {
+                                o[0] = self.output(0, f);
+                                o[1..].fill(f32::NAN);
+                                if o[0] >= least {
+                                    selected.push(p);
+                                }
+                            }
+                            if selected.is_empty() {
+                                return;
+                            }
+                            gathered.clear();
+                            for &p in selected.iter() {
+                                gathered.extend_from_slice(&patches[p * k..(p + 1) * k]);
+                            }
+                            let pose_features = &mut features[..selected.len() * 48];
+                            self.pose_hidden
+                                .multiply(gathered, selected.len(), pose_features);
+                            for (&p, f) in selected.iter().zip(pose_features.chunks_exact(48)) {
+                                for head in 1..5 {
+                                    out[p * 5 + head] =
+                                        self.output(head, &f[(head - 1) * 12..head * 12]);
+                                }
+                            }
                         }
                     }
                 },
@@ -321,7 +379,12 @@ impl HostDecoder {
     /// # Shapes
     /// - `correlation`: `[batch, 96, h, w]`
     /// - output: `[batch, 5, 4h, 4w]` maps, and the intermediates when `trace`
-    pub fn forward(&self, correlation: Tensor<4>, trace: bool) -> (Tensor<4>, Option<HostTrace>) {
+    pub fn forward(
+        &self,
+        correlation: Tensor<4>,
+        trace: bool,
+        pose: PoseHeads,
+    ) -> (Tensor<4>, Option<HostTrace>) {
         let device = correlation.device();
         let [b, c, h, w] = correlation.dims();
         let input: Vec<f32> = correlation
@@ -346,7 +409,7 @@ impl HostDecoder {
             }
             relu_in_place(&mut x);
             let x = pixel_shuffle(&x, 2 * w, self.conv2.cout); // [4h, 4w, 24]
-            maps.extend(self.heads.forward(&x, 4 * h, 4 * w)); // [5, 4h, 4w]
+            maps.extend(self.heads.forward(&x, 4 * h, 4 * w, pose)); // [5, 4h, 4w]
         }
         let maps = Tensor::from_data(TensorData::new(maps, [b, 5, 4 * h, 4 * w]), &device);
         let trace = trace.then(|| HostTrace {
@@ -355,5 +418,51 @@ impl HostDecoder {
             bn2: nchw_tensor(&bn2s, 2 * h, 2 * w, self.conv2.cout, &device),
         });
         (maps, trace)
+    }
+}
+
+#[cfg(test)]
+mod tests {
+    use super::*;
+    use crate::model::TdcmConfig;
+
+    #[test]
+    fn pose_heads_where_the_score_is_high_equal_the_full_maps_there() {
+        let device = Default::default();
+        let model = TdcmConfig::new().init(&device);
+        let decoder = HostDecoder::new(&model.search_matcher);
+        let correlation = Tensor::<4>::random(
+            [1, 96, 9, 11],
+            burn::tensor::Distribution::Normal(0.0, 1.0),
+            &device,
+        );
+        let planes = |pose| -> Vec<f32> {
+            decoder
+                .forward(correlation.clone(), false, pose)
+                .0
+                .into_data()
+                .try_into_vec()
+                .unwrap()
+        };
+        let full = planes(PoseHeads::Everywhere);
+        let n = full.len() / 5;
+        let mut scores = full[..n].to_vec();
+        scores.sort_by(f32::total_cmp);
+        let least = scores[n / 2];
+        let partial = planes(PoseHeads::WhereScoreAtLeast(least));
+        let mut kept = 0;
+        for p in 0..n {
+            assert!((full[p] - partial[p]).abs() < 1e-6, "score at {p}");
+            for head in 1..5 {
+                let (a, b) = (full[head * n + p], partial[head * n + p]);
+                if full[p] >= least {
+                    assert!((a - b).abs() < 1e-5, "head {head} at {p}: {a} vs {b}");
+                } else {
+                    assert!(b.is_nan(), "head {head} at {p} should be skipped");
+                }
+            }
+            kept += usize::from(full[p] >= least);
+        }
+        assert!(kept >= n / 2 && kept < n, "{kept} of {n}");
     }
 }

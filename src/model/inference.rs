@@ -8,7 +8,7 @@ use burn::prelude::*;
 
 use super::backbone::{BackboneTrace, GeluGrn};
 use super::device::is_host_cpu;
-use super::host_decoder::HostDecoder;
+use super::host_decoder::{HostDecoder, PoseHeads};
 use super::tdcm::{MatchMaps, SearchTrace, Tdcm, depthwise_correlation};
 
 /// Loaded weights plus the kernels chosen to run them.
@@ -78,6 +78,17 @@ impl InferenceNetwork {
     /// LayerNorm, residuals) slow by 20-40 % (measured with `examples/profile.rs`), which made a
     /// batch of 4 cost 12 % more per pair than four single passes.
     pub fn forward(&self, images: Tensor<4>, kernels: Tensor<4>) -> MatchMaps {
+        self.forward_for_peaks(images, kernels, PoseHeads::Everywhere)
+    }
+
+    /// [`InferenceNetwork::forward`] evaluating the pose heads only where `pose` says (on the
+    /// host CPU; other backends compute every head).
+    pub fn forward_for_peaks(
+        &self,
+        images: Tensor<4>,
+        kernels: Tensor<4>,
+        pose: PoseHeads,
+    ) -> MatchMaps {
         let Some(decoder) = &self.host else {
             return self.model.search_matcher.forward(images, kernels);
         };
@@ -87,7 +98,7 @@ impl InferenceNetwork {
                 let (features, _) =
                     backbone.forward_traced(images.clone().narrow(0, i, 1), GeluGrn::Fused);
                 let correlation = depthwise_correlation(features, kernels.clone().narrow(0, i, 1));
-                decoder.forward(correlation, false).0
+                decoder.forward(correlation, false, pose).0
             })
             .collect();
         MatchMaps {
@@ -111,7 +122,7 @@ impl InferenceNetwork {
             .backbone
             .forward_traced(images, GeluGrn::Fused);
         let correlation = depthwise_correlation(features.clone(), kernels);
-        let (stacked, trace) = decoder.forward(correlation.clone(), true);
+        let (stacked, trace) = decoder.forward(correlation.clone(), true, PoseHeads::Everywhere);
         let trace = trace.expect("trace requested");
         let search_trace = SearchTrace {
             backbone,

@@ -8,6 +8,7 @@ mod device;
 mod fused;
 pub use fused::gelu_grn;
 mod host_decoder;
+pub use host_decoder::PoseHeads;
 mod inference;
 pub use inference::InferenceNetwork;
 mod tdcm;
