@@ -134,23 +134,7 @@ async fn memory(store: &str, start: &dyn Fn() -> ChildServer, count: usize) {
     let mut client = server.client().await;
     tokio::time::sleep(Duration::from_millis(500)).await;
     let at_start = rss_mib(&server);
-    let mut token = String::new();
-    let mut listed = 0;
-    loop {
-        let page = client
-            .list_templates(proto::ListTemplatesRequest {
-                page_size: 1000,
-                page_token: token,
-            })
-            .await
-            .unwrap()
-            .into_inner();
-        listed += page.templates.len();
-        if page.next_page_token.is_empty() {
-            break;
-        }
-        token = page.next_page_token;
-    }
+    let listed = service::list_all(&mut client, 1000).await.len();
     let after_list = rss_mib(&server);
     let frame = png(&scene(224, 224, 7));
     for k in 0..100 {

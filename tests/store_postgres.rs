@@ -92,23 +92,7 @@ async fn within<F: Future<Output = bool>>(
 }
 
 async fn health(addr: std::net::SocketAddr) -> i32 {
-    health_of(addr, "").await
-}
-
-async fn health_of(addr: std::net::SocketAddr, service: &str) -> i32 {
-    let channel = Channel::from_shared(format!("http://{addr}"))
-        .unwrap()
-        .connect()
-        .await
-        .expect("health client connects");
-    tonic_health::pb::health_client::HealthClient::new(channel)
-        .check(tonic_health::pb::HealthCheckRequest {
-            service: service.into(),
-        })
-        .await
-        .expect("health answers")
-        .into_inner()
-        .status
+    health_of(&addr.to_string(), "").await
 }
 
 const SERVING: i32 = tonic_health::pb::health_check_response::ServingStatus::Serving as i32;
@@ -223,28 +207,12 @@ async fn replicas_share_templates_and_follow_each_others_changes() {
     );
 
     // Listing pages from the database, the same on both replicas.
-    let list = |mut client: PoseMatcherClient<Channel>| async move {
-        let mut ids = Vec::new();
-        let mut token = String::new();
-        loop {
-            let page = client
-                .list_templates(proto::ListTemplatesRequest {
-                    page_size: 1,
-                    page_token: token,
-                })
-                .await
-                .unwrap()
-                .into_inner();
-            ids.extend(page.templates.into_iter().map(|t| t.template_id));
-            if page.next_page_token.is_empty() {
-                return ids;
-            }
-            token = page.next_page_token;
-        }
+    let ids = |templates: Vec<proto::TemplateInfo>| -> Vec<String> {
+        templates.into_iter().map(|t| t.template_id).collect()
     };
-    let listed = list(on_a.clone()).await;
+    let listed = ids(list_all(&mut on_a, 1).await);
     assert_eq!(listed, vec!["race".to_string(), "reference-y".to_string()]);
-    assert_eq!(list(on_b.clone()).await, listed);
+    assert_eq!(ids(list_all(&mut on_b, 1).await), listed);
 
     let metrics = metrics_text(&b).await;
     assert!(
@@ -306,23 +274,7 @@ async fn kill_9_during_registrations_loses_no_acknowledged_template() {
         acknowledged.extend(done);
     }
     let (checker, mut client) = replica(&cluster, &[]).await;
-    let mut stored = Vec::new();
-    let mut token = String::new();
-    loop {
-        let page = client
-            .list_templates(proto::ListTemplatesRequest {
-                page_size: 1000,
-                page_token: token,
-            })
-            .await
-            .unwrap()
-            .into_inner();
-        stored.extend(page.templates);
-        if page.next_page_token.is_empty() {
-            break;
-        }
-        token = page.next_page_token;
-    }
+    let stored = list_all(&mut client, 1000).await;
     for (id, sha) in &acknowledged {
         let row = stored.iter().find(|t| &t.template_id == id);
         assert_eq!(

@@ -226,19 +226,7 @@ impl ChildServer {
 
     /// The health of the whole server, as a probe sees it.
     pub async fn health(&self) -> i32 {
-        let channel = Channel::from_shared(format!("http://{}", self.addr))
-            .unwrap()
-            .connect()
-            .await
-            .expect("health client connects");
-        tonic_health::pb::health_client::HealthClient::new(channel)
-            .check(tonic_health::pb::HealthCheckRequest {
-                service: String::new(),
-            })
-            .await
-            .expect("health answers")
-            .into_inner()
-            .status
+        health_of(&self.addr, "").await
     }
 
     /// Whether a log line contains `text` so far.
@@ -302,4 +290,44 @@ pub async fn get_with_image(
         .await
         .expect("the template is registered")
         .into_inner()
+}
+
+/// The health status of `service` ("" = the whole server) on the server at `addr`.
+pub async fn health_of(addr: &str, service: &str) -> i32 {
+    let channel = Channel::from_shared(format!("http://{addr}"))
+        .unwrap()
+        .connect()
+        .await
+        .expect("health client connects");
+    tonic_health::pb::health_client::HealthClient::new(channel)
+        .check(tonic_health::pb::HealthCheckRequest {
+            service: service.into(),
+        })
+        .await
+        .expect("health answers")
+        .into_inner()
+        .status
+}
+
+/// Every registered template, following `next_page_token` with pages of `page_size`.
+pub async fn list_all(
+    client: &mut PoseMatcherClient<Channel>,
+    page_size: u32,
+) -> Vec<proto::TemplateInfo> {
+    let (mut all, mut token) = (Vec::new(), String::new());
+    loop {
+        let page = client
+            .list_templates(proto::ListTemplatesRequest {
+                page_size,
+                page_token: token,
+            })
+            .await
+            .expect("ListTemplates answers")
+            .into_inner();
+        all.extend(page.templates);
+        if page.next_page_token.is_empty() {
+            return all;
+        }
+        token = page.next_page_token;
+    }
 }

@@ -279,44 +279,28 @@ impl PostgresStore {
             }
             let (width, height) = (new.width as i32, new.height as i32);
             let labels = Json(&new.labels);
-            let row = if existing.is_some() {
-                let sql = format!(
+            let sql = if existing.is_some() {
+                format!(
                     "UPDATE posematch_templates SET image_png = $2, content_sha256 = $3, \
                      width = $4, height = $5, labels = $6, updated_at = now(), \
                      version = version + 1 WHERE template_id = $1 RETURNING {META_COLUMNS}"
-                );
-                tx.query_one(
-                    &sql,
-                    &[
-                        &new.template_id,
-                        &new.png,
-                        &new.content_sha256,
-                        &width,
-                        &height,
-                        &labels,
-                    ],
                 )
-                .await
             } else {
-                let sql = format!(
+                format!(
                     "INSERT INTO posematch_templates (template_id, image_png, content_sha256, \
                      width, height, labels, created_at, updated_at, version) \
                      VALUES ($1, $2, $3, $4, $5, $6, now(), now(), 1) RETURNING {META_COLUMNS}"
-                );
-                tx.query_one(
-                    &sql,
-                    &[
-                        &new.template_id,
-                        &new.png,
-                        &new.content_sha256,
-                        &width,
-                        &height,
-                        &labels,
-                    ],
                 )
-                .await
-            }
-            .map_err(db_error)?;
+            };
+            let params: [&(dyn tokio_postgres::types::ToSql + Sync); 6] = [
+                &new.template_id,
+                &new.png,
+                &new.content_sha256,
+                &width,
+                &height,
+                &labels,
+            ];
+            let row = tx.query_one(&sql, &params).await.map_err(db_error)?;
             let meta = meta_of(&row);
             let created = existing.is_none();
             announce(&tx, &meta.template_id, Some(&meta.content_sha256), created).await?;
