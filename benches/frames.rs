@@ -13,7 +13,9 @@
 //! and its angle within 15° (one detection per truth). `cargo bench --bench frames`;
 //! `POSEMATCH_BENCH_FRAMES` sets frames per case (default 2), `POSEMATCH_BENCH_THREADS` the
 //! thread counts (default `1,2`), `POSEMATCH_BENCH_GRID_SCALES` the objects' sizes on the
-//! network grid to compare (default `1`; see `plan::scale_passes`).
+//! network grid to compare (default `1`; see `plan::scale_passes`), `POSEMATCH_BENCH_PRECISION`
+//! the arithmetic of the network's products (default `f32`; `f32,bf16` compares both where the
+//! CPU has AMX tiles).
 
 use std::path::PathBuf;
 use std::time::Instant;
@@ -25,7 +27,7 @@ static ALLOCATOR: mimalloc::MiMalloc = mimalloc::MiMalloc;
 use posematch::geometry::{Pose, angle_distance_deg};
 use posematch::imaging::{GrayImage32, InputConvention, RgbImage32};
 use posematch::matcher::{MatchOptions, Matcher, ncc};
-use posematch::model::{WeightsSource, load_weights, select_device};
+use posematch::model::{Precision, WeightsSource, load_weights, select_device};
 use posematch::synth::{parts_frame, procedural_part};
 
 struct Case {
@@ -111,6 +113,14 @@ fn main() {
         .map(|t| t.max(1.0) as usize)
         .collect();
     let grid_scales = list("POSEMATCH_BENCH_GRID_SCALES", "1");
+    let precisions: Vec<Precision> = std::env::var("POSEMATCH_BENCH_PRECISION")
+        .unwrap_or_else(|_| "f32".into())
+        .split(',')
+        .map(|p| {
+            p.parse()
+                .expect("POSEMATCH_BENCH_PRECISION: f32 and/or bf16")
+        })
+        .collect();
     let device = select_device().expect("BURN_DEVICE names a compiled backend");
     let mut models = vec![("default", WeightsSource::Embedded.load(&device).unwrap())];
     let official =
@@ -127,10 +137,17 @@ fn main() {
         .into_iter()
         .filter(|c| classical_only || filter.as_ref().is_none_or(|f| c.name.contains(f.as_str())))
         .collect();
-    println!("| weights | case | grid scale | threads | ms/frame (median) | recall | precision |");
-    println!("| --- | --- | --- | --- | --- | --- | --- |");
-    for (name, model) in models {
-        let mut matcher = Matcher::new(model, device.clone(), InputConvention::ImagenetRgb);
+    println!(
+        "| weights | arithmetic | case | grid scale | threads | ms/frame (median) | recall | precision |"
+    );
+    println!("| --- | --- | --- | --- | --- | --- | --- | --- |");
+    let runs = models
+        .iter()
+        .flat_map(|(name, model)| precisions.iter().map(move |p| (*name, model, *p)));
+    for (name, model, precision) in runs {
+        let mut matcher = Matcher::new(model.clone(), device.clone(), InputConvention::ImagenetRgb)
+            .with_precision(precision)
+            .unwrap_or_else(|e| panic!("{e}"));
         for (case, &grid_scale) in cases
             .iter()
             .flat_map(|c| grid_scales.iter().map(move |g| (c, g)))
@@ -167,7 +184,7 @@ fn main() {
                 }
                 ms.sort_by(f64::total_cmp);
                 println!(
-                    "| {name} | {} | {grid_scale} | {threads} | {:.1} | {:.3} | {:.3} |",
+                    "| {name} | {precision} | {} | {grid_scale} | {threads} | {:.1} | {:.3} | {:.3} |",
                     case.name,
                     ms[ms.len() / 2],
                     totals.0 as f64 / totals.2.max(1) as f64,

@@ -21,7 +21,7 @@ use posematch::imaging::GrayImage32;
 use posematch::imaging::{InputConvention, RgbImage32};
 use posematch::matcher::peaks::{MapPlanes, find_peaks, peak_at};
 use posematch::matcher::{MatchOptions, Matcher};
-use posematch::model::{Tdcm, TdcmConfig, load_weights, multiply_adds, select_device};
+use posematch::model::{Precision, Tdcm, TdcmConfig, load_weights, multiply_adds, select_device};
 use posematch::refine::refine_pose;
 
 fn model(device: &Device) -> (Tdcm, &'static str) {
@@ -132,6 +132,29 @@ fn benches(c: &mut Criterion) {
                 maps.stacked.into_data()
             })
         });
+        // The same search with the products in bf16 on AMX tiles, where this CPU has them.
+        match Precision::Bf16.check_machine() {
+            Ok(()) => {
+                let bf16 = Matcher::new(
+                    matcher.network().model().clone(),
+                    device.clone(),
+                    InputConvention::ImagenetRgb,
+                )
+                .with_precision(Precision::Bf16)
+                .unwrap();
+                group.bench_function("search_224_batch_1_pose_heads_at_peaks_bf16", |b| {
+                    b.iter(|| {
+                        let maps = bf16.network().forward_for_peaks(
+                            images.clone(),
+                            encoded.kernel.clone(),
+                            posematch::model::PoseHeads::WhereScoreAtLeast(least),
+                        );
+                        maps.stacked.into_data()
+                    })
+                });
+            }
+            Err(e) => println!("bf16 search not measured: {e}"),
+        }
     }
     // Decode alone: peaks, sub-pixel centres and parameters from one 224x224 set of maps.
     let images = Tensor::<4>::random(

@@ -16,7 +16,7 @@ use clap::{Args, Parser, Subcommand};
 use crate::imaging::{DecodeError, ImageLimits, InputConvention, decode_image_file};
 use crate::matcher::{MatchError, Matcher};
 use crate::model::{
-    DeviceError, LoadError, WeightsSource, load_weights, save_weights, select_device,
+    DeviceError, LoadError, Precision, WeightsSource, load_weights, save_weights, select_device,
 };
 
 pub use match_cmd::MatchArgs;
@@ -91,6 +91,10 @@ pub struct ModelArgs {
     /// trained) or `gray` (the authors' test.py demo).
     #[arg(long, default_value = "imagenet", value_parser = str::parse::<InputConvention>)]
     pub convention: InputConvention,
+    /// Arithmetic of the network's large products: `f32` (exact) or `bf16` (Intel AMX tiles,
+    /// several times faster; README "Speed" shows its held-out accuracy).
+    #[arg(long, default_value = "f32", value_parser = str::parse::<Precision>)]
+    pub precision: Precision,
 }
 
 pub(crate) fn parse_weights_source(s: &str) -> Result<WeightsSource, String> {
@@ -157,7 +161,9 @@ impl CliError {
 pub fn load_model(args: &ModelArgs) -> Result<Matcher, CliError> {
     let device = select_device()?;
     let model = args.weights.load(&device)?;
-    Ok(Matcher::new(model, device, args.convention))
+    Matcher::new(model, device, args.convention)
+        .with_precision(args.precision)
+        .map_err(|e| CliError::Usage(e.to_string()))
 }
 
 /// Runs one parsed command line.

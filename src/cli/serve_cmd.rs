@@ -26,6 +26,9 @@ pub struct ServeArgs {
     /// Weights file (.bpk, .pth, .safetensors); default: the weights embedded in the binary.
     #[arg(long)]
     weights: Option<PathBuf>,
+    /// Arithmetic of the network's large products: f32 (default, exact) or bf16 (Intel AMX).
+    #[arg(long)]
+    precision: Option<String>,
     /// Where registered templates are kept: a directory, or postgres://USER@HOST/DATABASE for
     /// a database shared by replicas (default: --template-dir).
     #[arg(long)]
@@ -52,6 +55,7 @@ pub fn run(args: ServeArgs) -> Result<(), CliError> {
         listen: args.listen,
         metrics_listen: args.metrics_listen,
         weights: args.weights,
+        precision: args.precision,
         template_dir: args.template_dir,
         template_store: args.template_store,
         tls_cert: args.tls_cert,
@@ -101,7 +105,7 @@ pub fn run(args: ServeArgs) -> Result<(), CliError> {
 
 /// Checks what can be checked before binding, then defers the (slow) load to the server.
 fn model_loader(settings: &Settings) -> Result<ModelLoader, CliError> {
-    let convention = settings.convention;
+    let (convention, precision) = (settings.convention, settings.precision);
     let weights = settings.weights_source();
     if let WeightsSource::File(path) = &weights
         && !path.is_file()
@@ -114,7 +118,9 @@ fn model_loader(settings: &Settings) -> Result<ModelLoader, CliError> {
     Ok(Box::new(move || {
         let device = select_device().map_err(|e| e.to_string())?;
         let model = weights.load(&device).map_err(|e| e.to_string())?;
-        Ok(Matcher::new(model, device, convention))
+        Matcher::new(model, device, convention)
+            .with_precision(precision)
+            .map_err(|e| e.to_string())
     }))
 }
 

@@ -29,6 +29,8 @@ pub struct Settings {
     pub weights: String,
     /// Input convention of the weights: `imagenet` or `gray`.
     pub convention: crate::imaging::InputConvention,
+    /// Arithmetic of the network's large products: `f32` (exact) or `bf16` (AMX tiles).
+    pub precision: crate::model::Precision,
     /// Most search images in one forward pass; a batch forms only from requests already
     /// waiting, so a lone request never waits for one. 4 measured best on 2 cores (README).
     pub max_batch_size: usize,
@@ -88,6 +90,7 @@ pub struct Overrides {
     pub listen: Option<String>,
     pub metrics_listen: Option<String>,
     pub weights: Option<PathBuf>,
+    pub precision: Option<String>,
     pub template_dir: Option<PathBuf>,
     pub template_store: Option<String>,
     pub tls_cert: Option<PathBuf>,
@@ -138,6 +141,7 @@ impl Settings {
         builder = set(builder, "listen", overrides.listen.clone()).map_err(wrap)?;
         builder = set(builder, "metrics_listen", overrides.metrics_listen.clone()).map_err(wrap)?;
         builder = set(builder, "weights", path_string(&overrides.weights)).map_err(wrap)?;
+        builder = set(builder, "precision", overrides.precision.clone()).map_err(wrap)?;
         builder = set(
             builder,
             "template_dir",
@@ -205,6 +209,9 @@ impl Settings {
                 "metrics_listen = {:?} is not an address; use HOST:PORT (port 0 = any free port) or \"\" to disable",
                 self.metrics_listen
             ));
+        }
+        if let Err(e) = self.precision.check_machine() {
+            return bad(e.to_string());
         }
         if !(1..=64).contains(&self.max_batch_size) {
             return bad(format!(

@@ -16,7 +16,7 @@ use burn::prelude::*;
 use crate::geometry::Pose;
 use crate::imaging::{GrayImage32, ImageLimits};
 use crate::imaging::{InputConvention, RgbImage32, resize_rgb, to_network_input};
-use crate::model::{InferenceNetwork, PoseHeads, TEMPLATE_GRID, Tdcm};
+use crate::model::{InferenceNetwork, PoseHeads, Precision, PrecisionError, TEMPLATE_GRID, Tdcm};
 pub use options::{AngleRange, MatchOptions, Method, ScaleRange, ValidOptions};
 use peaks::{MapPlanes, find_peaks, peak_at};
 use plan::{MAX_NETWORK_PIXELS, MIN_INPUT_SIDE, ScalePass, Tile};
@@ -163,6 +163,13 @@ impl Matcher {
             max_whole_pixels: plan::MAX_WHOLE_PIXELS,
             grid_scale: plan::DEFAULT_GRID_SCALE,
         }
+    }
+
+    /// Runs the network's large products in `precision` ([`Precision`]); refused where this
+    /// machine or device cannot.
+    pub fn with_precision(mut self, precision: Precision) -> Result<Self, PrecisionError> {
+        self.network = self.network.with_precision(precision)?;
+        Ok(self)
     }
 
     /// Shows objects at `grid_scale` times the template grid (a measurement knob for the scale

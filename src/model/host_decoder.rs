@@ -12,6 +12,8 @@
 use burn::prelude::*;
 use rayon::prelude::*;
 
+use super::Precision;
+use super::amx::{self, Bf16Weights};
 use super::tdcm::{HEAD_SCALE_MAX, HEAD_SCALE_MIN, Heads, SearchMatcher};
 use burn::nn::BatchNorm;
 use burn::nn::conv::Conv2d;
@@ -26,6 +28,55 @@ struct Conv3x3 {
     /// `[9 * cin, cout]`, row `(ky * 3 + kx) * cin + ci`.
     matrix: Vec<f32>,
     bias: Vec<f32>,
+    /// The same weights for the AMX tiles, when the network runs in bf16.
+    bf16: Option<Bf16Weights>,
+}
+
+/// An element of im2col patches: f32 for the exact path, bf16 bits for the tiles.
+trait Patch: Copy + Default + Send + Sync {
+    fn from_f32(value: f32) -> Self;
+    /// Values per patch row (9 · cin, padded to the tiles' k steps for bf16).
+    fn row_len(conv: &Conv3x3) -> usize;
+    /// Patch rows a buffer for `pixels` pixels must hold.
+    fn rows_for(pixels: usize) -> usize;
+    /// `out[pixels, cout] = patches · matrix + bias`.
+    fn multiply(conv: &Conv3x3, patches: &[Self], pixels: usize, out: &mut [f32]);
+}
+
+impl Patch for f32 {
+    fn from_f32(value: f32) -> Self {
+        value
+    }
+
+    fn row_len(conv: &Conv3x3) -> usize {
+        9 * conv.cin
+    }
+
+    fn rows_for(pixels: usize) -> usize {
+        pixels
+    }
+
+    fn multiply(conv: &Conv3x3, patches: &[f32], pixels: usize, out: &mut [f32]) {
+        conv.multiply(patches, pixels, out);
+    }
+}
+
+impl Patch for u16 {
+    fn from_f32(value: f32) -> Self {
+        amx::to_bf16(value)
+    }
+
+    fn row_len(conv: &Conv3x3) -> usize {
+        conv.bf16_weights().lhs_stride()
+    }
+
+    fn rows_for(pixels: usize) -> usize {
+        amx::padded_rows(pixels)
+    }
+
+    fn multiply(conv: &Conv3x3, patches: &[u16], pixels: usize, out: &mut [f32]) {
+        amx::multiply(patches, pixels, conv.bf16_weights(), out);
+    }
 }
 
 fn values(t: Tensor<1>) -> Vec<f32> {
@@ -77,26 +128,39 @@ impl Conv3x3 {
             cout,
             matrix,
             bias,
+            bf16: None,
         }
     }
 
-    /// Rows per chunk for an image `width` wide.
-    fn chunk_rows(&self, width: usize) -> usize {
-        (CHUNK_BYTES / (width * 9 * self.cin * 4)).max(1)
+    /// Lays the weights out for the AMX tiles (bf16) or drops that copy (f32).
+    fn set_precision(&mut self, precision: Precision) {
+        self.bf16 = (precision == Precision::Bf16)
+            .then(|| Bf16Weights::new(&self.matrix, 9 * self.cin, self.cout, &self.bias));
     }
 
-    /// Fills `patches` (`[rows * width, 9 * cin]`) for output rows `y0..y0 + rows`.
-    fn im2col(
+    fn bf16_weights(&self) -> &Bf16Weights {
+        self.bf16
+            .as_ref()
+            .expect("bf16 patches only where the weights were laid out; this is a bug")
+    }
+
+    /// Rows per chunk for an image `width` wide.
+    fn chunk_rows<T: Patch>(&self, width: usize) -> usize {
+        (CHUNK_BYTES / (width * T::row_len(self) * size_of::<T>())).max(1)
+    }
+
+    /// Fills `patches` (`[rows * width, T::row_len]`) for output rows `y0..y0 + rows`.
+    fn im2col<T: Patch>(
         &self,
         input: &[f32],
         height: usize,
         width: usize,
         y0: usize,
         rows: usize,
-        patches: &mut [f32],
+        patches: &mut [T],
     ) {
         let cin = self.cin;
-        let row_len = 9 * cin;
+        let row_len = T::row_len(self);
         for (p, patch) in patches
             .chunks_exact_mut(row_len)
             .take(rows * width)
@@ -109,10 +173,12 @@ impl Conv3x3 {
                     let sx = x as isize + kx as isize - 1;
                     let dst = &mut patch[(ky * 3 + kx) * cin..(ky * 3 + kx + 1) * cin];
                     if sy < 0 || sy >= height as isize || sx < 0 || sx >= width as isize {
-                        dst.fill(0.0);
+                        dst.fill(T::default());
                     } else {
                         let src = (sy as usize * width + sx as usize) * cin;
-                        dst.copy_from_slice(&input[src..src + cin]);
+                        for (d, v) in dst.iter_mut().zip(&input[src..src + cin]) {
+                            *d = T::from_f32(*v);
+                        }
                     }
                 }
             }
@@ -157,17 +223,25 @@ impl Conv3x3 {
 
     /// The convolution over a whole channels-last image: `[h * w, cin]` → `[h * w, cout]`.
     fn forward(&self, input: &[f32], height: usize, width: usize) -> Vec<f32> {
-        let rows = self.chunk_rows(width);
+        if self.bf16.is_some() {
+            self.forward_with::<u16>(input, height, width)
+        } else {
+            self.forward_with::<f32>(input, height, width)
+        }
+    }
+
+    fn forward_with<T: Patch>(&self, input: &[f32], height: usize, width: usize) -> Vec<f32> {
+        let rows = self.chunk_rows::<T>(width);
         let mut out = vec![0f32; height * width * self.cout];
         out.par_chunks_mut(rows * width * self.cout)
             .enumerate()
             .for_each_init(
-                || vec![0f32; rows * width * 9 * self.cin],
+                || vec![T::default(); T::rows_for(rows * width) * T::row_len(self)],
                 |patches, (chunk, out)| {
                     let y0 = chunk * rows;
                     let n = (height - y0).min(rows);
                     self.im2col(input, height, width, y0, n, patches);
-                    self.multiply(patches, n * width, out);
+                    T::multiply(self, patches, n * width, out);
                 },
             );
         out
@@ -251,6 +325,16 @@ impl HeadsCpu {
         }
     }
 
+    fn set_precision(&mut self, precision: Precision) {
+        for conv in [
+            &mut self.hidden,
+            &mut self.score_hidden,
+            &mut self.pose_hidden,
+        ] {
+            conv.set_precision(precision);
+        }
+    }
+
     /// Head `head`'s output from its 12 hidden values (before ReLU).
     fn output(&self, head: usize, hidden: &[f32]) -> f32 {
         let mut logit = self.output_bias[head];
@@ -266,8 +350,22 @@ impl HeadsCpu {
 
     /// `[h * w, 24]` → `[5, h * w]` planes (score, sign, cos, scale_x, scale_y).
     fn forward(&self, input: &[f32], height: usize, width: usize, pose: PoseHeads) -> Vec<f32> {
-        let rows = self.hidden.chunk_rows(width);
-        let k = 9 * self.hidden.cin;
+        if self.hidden.bf16.is_some() {
+            self.forward_with::<u16>(input, height, width, pose)
+        } else {
+            self.forward_with::<f32>(input, height, width, pose)
+        }
+    }
+
+    fn forward_with<T: Patch>(
+        &self,
+        input: &[f32],
+        height: usize,
+        width: usize,
+        pose: PoseHeads,
+    ) -> Vec<f32> {
+        let rows = self.hidden.chunk_rows::<T>(width);
+        let k = T::row_len(&self.hidden);
         let mut pixel_major = vec![0f32; height * width * 5];
         pixel_major
             .par_chunks_mut(rows * width * 5)
@@ -275,9 +373,9 @@ impl HeadsCpu {
             .for_each_init(
                 || {
                     (
-                        vec![0f32; rows * width * k],
+                        vec![T::default(); T::rows_for(rows * width) * k],
                         vec![0f32; rows * width * self.hidden.cout],
-                        Vec::<f32>::new(),
+                        Vec::<T>::new(),
                         Vec::<usize>::new(),
                     )
                 },
@@ -288,7 +386,7 @@ impl HeadsCpu {
                     let out = &mut out[..n * width * 5];
                     match pose {
                         PoseHeads::Everywhere => {
-                            self.hidden.multiply(patches, n * width, features);
+                            T::multiply(&self.hidden, patches, n * width, features);
                             for (f, o) in features.chunks_exact(60).zip(out.chunks_exact_mut(5)) {
                                 for (head, value) in o.iter_mut().enumerate() {
                                     *value = self.output(head, &f[head * 12..head * 12 + 12]);
@@ -296,7 +394,7 @@ impl HeadsCpu {
                             }
                         }
                         PoseHeads::WhereScoreAtLeast(least) => {
-                            self.score_hidden.multiply(patches, n * width, features);
+                            T::multiply(&self.score_hidden, patches, n * width, features);
                             selected.clear();
                             for (p, (f, o)) in features
                                 .chunks_exact(12)
@@ -316,9 +414,9 @@ impl HeadsCpu {
                             for &p in selected.iter() {
                                 gathered.extend_from_slice(&patches[p * k..(p + 1) * k]);
                             }
+                            gathered.resize(T::rows_for(selected.len()) * k, T::default());
                             let pose_features = &mut features[..selected.len() * 48];
-                            self.pose_hidden
-                                .multiply(gathered, selected.len(), pose_features);
+                            T::multiply(&self.pose_hidden, gathered, selected.len(), pose_features);
                             for (&p, f) in selected.iter().zip(pose_features.chunks_exact(48)) {
                                 for head in 1..5 {
                                     out[p * 5 + head] =
@@ -374,6 +472,15 @@ impl HostDecoder {
             conv2: Conv3x3::new(&matcher.decoder.conv2, Some(&matcher.decoder.bn2)),
             heads: HeadsCpu::new(&matcher.heads),
         }
+    }
+
+    /// Runs the convolutions' products in `precision` from now on (the caller checked that the
+    /// machine can).
+    pub fn set_precision(&mut self, precision: Precision) {
+        for conv in [&mut self.fusion, &mut self.conv1, &mut self.conv2] {
+            conv.set_precision(precision);
+        }
+        self.heads.set_precision(precision);
     }
 
     /// # Shapes

@@ -6,16 +6,19 @@
 
 use burn::prelude::*;
 
-use super::backbone::{BackboneTrace, GeluGrn};
+use super::backbone::{BackboneTrace, GeluGrn, PointwiseBf16};
 use super::device::is_host_cpu;
 use super::host_decoder::{HostDecoder, PoseHeads};
 use super::tdcm::{MatchMaps, SearchTrace, Tdcm, depthwise_correlation};
+use super::{Precision, PrecisionError};
 
 /// Loaded weights plus the kernels chosen to run them.
 pub struct InferenceNetwork {
     model: Tdcm,
     /// `Some` when inference runs on the host CPU kernels.
     host: Option<HostDecoder>,
+    /// The search backbone's pointwise layers for the AMX tiles, at [`Precision::Bf16`].
+    pointwise: Option<Vec<PointwiseBf16>>,
 }
 
 impl InferenceNetwork {
@@ -32,12 +35,48 @@ impl InferenceNetwork {
     /// The host CPU kernels, whatever the device (they read every tensor into host memory).
     pub fn host(model: Tdcm) -> Self {
         let host = Some(HostDecoder::new(&model.search_matcher));
-        Self { model, host }
+        Self {
+            model,
+            host,
+            pointwise: None,
+        }
     }
 
     /// burn's modules throughout, as training and GPU devices run them.
     pub fn modules(model: Tdcm) -> Self {
-        Self { model, host: None }
+        Self {
+            model,
+            host: None,
+            pointwise: None,
+        }
+    }
+
+    /// Runs the search branch's large products (backbone pointwise layers, decoder and head
+    /// convolutions) in `precision` (see [`Precision`]); the template branch stays f32 (its
+    /// cost is negligible). Refused where the machine or the device cannot run it.
+    pub fn with_precision(mut self, precision: Precision) -> Result<Self, PrecisionError> {
+        precision.check_machine()?;
+        let Some(decoder) = &mut self.host else {
+            return match precision {
+                Precision::F32 => Ok(self),
+                Precision::Bf16 => Err(PrecisionError::NotHostCpu),
+            };
+        };
+        decoder.set_precision(precision);
+        self.pointwise = (precision == Precision::Bf16).then(|| {
+            let blocks = &self.model.search_matcher.backbone.blocks;
+            blocks.iter().map(PointwiseBf16::new).collect()
+        });
+        Ok(self)
+    }
+
+    /// The arithmetic of the search branch's products.
+    pub fn precision(&self) -> Precision {
+        if self.pointwise.is_some() {
+            Precision::Bf16
+        } else {
+            Precision::F32
+        }
     }
 
     pub fn model(&self) -> &Tdcm {
@@ -95,8 +134,11 @@ impl InferenceNetwork {
         let backbone = &self.model.search_matcher.backbone;
         let per_sample = (0..images.dims()[0])
             .map(|i| {
-                let (features, _) =
-                    backbone.forward_traced(images.clone().narrow(0, i, 1), GeluGrn::Fused);
+                let (features, _) = backbone.forward_with(
+                    images.clone().narrow(0, i, 1),
+                    GeluGrn::Fused,
+                    self.pointwise.as_deref(),
+                );
                 let correlation = depthwise_correlation(features, kernels.clone().narrow(0, i, 1));
                 decoder.forward(correlation, false, pose).0
             })
@@ -116,11 +158,11 @@ impl InferenceNetwork {
         let Some(decoder) = &self.host else {
             return self.model.search_matcher.forward_traced(images, kernels);
         };
-        let (features, backbone) = self
-            .model
-            .search_matcher
-            .backbone
-            .forward_traced(images, GeluGrn::Fused);
+        let (features, backbone) = self.model.search_matcher.backbone.forward_with(
+            images,
+            GeluGrn::Fused,
+            self.pointwise.as_deref(),
+        );
         let correlation = depthwise_correlation(features.clone(), kernels);
         let (stacked, trace) = decoder.forward(correlation.clone(), true, PoseHeads::Everywhere);
         let trace = trace.expect("trace requested");

@@ -2,6 +2,7 @@
 //! (see `../shared/reference/README.md`), split into a template encoder and a search matcher,
 //! plus weight loading and backend selection. No images, no poses: tensors in, tensors out.
 
+mod amx;
 mod backbone;
 mod cost;
 mod device;
@@ -11,6 +12,8 @@ mod host_decoder;
 pub use host_decoder::PoseHeads;
 mod inference;
 pub use inference::InferenceNetwork;
+mod precision;
+pub use precision::{Precision, PrecisionError};
 mod tdcm;
 mod weights;
 

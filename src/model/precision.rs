@@ -1,0 +1,114 @@
+//! The arithmetic of the network's matrix products, chosen by the operator.
+//!
+//! `f32` is the exact function of the checkpoint (the parity fixtures hold it to 1e-4).
+//! `bf16` rounds both operands of every large product (backbone pointwise layers, decoder and
+//! head convolutions) to bfloat16 and runs them on AMX tiles, accumulating in f32: several times
+//! faster where the CPU has AMX, slightly different numbers (README "Speed" shows the held-out
+//! accuracy of both). Everything else (depthwise convolutions, normalisations, activations,
+//! correlation, decoding, refinement) stays f32 in both.
+
+use std::fmt;
+use std::str::FromStr;
+
+use super::amx;
+
+/// Written `f32` or `bf16` in flags and settings; this is the one parser of those words.
+#[derive(Debug, Clone, Copy, PartialEq, Eq, Default, serde::Deserialize, serde::Serialize)]
+#[serde(try_from = "String", into = "String")]
+pub enum Precision {
+    #[default]
+    F32,
+    Bf16,
+}
+
+impl FromStr for Precision {
+    type Err = String;
+
+    fn from_str(s: &str) -> Result<Self, String> {
+        match s.trim().to_ascii_lowercase().as_str() {
+            "f32" => Ok(Self::F32),
+            "bf16" => Ok(Self::Bf16),
+            other => Err(format!(
+                "unknown precision `{other}`: use \"f32\" (exact) or \"bf16\" (AMX tiles)"
+            )),
+        }
+    }
+}
+
+impl fmt::Display for Precision {
+    fn fmt(&self, f: &mut fmt::Formatter<'_>) -> fmt::Result {
+        f.write_str(match self {
+            Self::F32 => "f32",
+            Self::Bf16 => "bf16",
+        })
+    }
+}
+
+impl From<Precision> for String {
+    fn from(precision: Precision) -> Self {
+        precision.to_string()
+    }
+}
+
+impl TryFrom<String> for Precision {
+    type Error = String;
+
+    fn try_from(s: String) -> Result<Self, String> {
+        s.parse()
+    }
+}
+
+/// Why a precision cannot run here.
+#[derive(Debug, Clone, PartialEq, Eq, thiserror::Error)]
+pub enum PrecisionError {
+    #[error(
+        "precision bf16 needs Intel AMX tiles (Xeon Sapphire Rapids or newer, Linux 5.16 or newer), which this machine does not offer: use precision f32"
+    )]
+    NoTiles,
+    #[error(
+        "precision bf16 runs on the host CPU kernels only (BURN_DEVICE flex or ndarray): use precision f32 on this device"
+    )]
+    NotHostCpu,
+}
+
+impl Precision {
+    /// Whether this machine can run `self` at all (the device is checked where the network is
+    /// built).
+    pub fn check_machine(self) -> Result<(), PrecisionError> {
+        match self {
+            Self::F32 => Ok(()),
+            Self::Bf16 if amx::available() => Ok(()),
+            Self::Bf16 => Err(PrecisionError::NoTiles),
+        }
+    }
+}
+
+#[cfg(test)]
+mod tests {
+    use super::*;
+
+    #[test]
+    fn words_parse_and_print_back() {
+        for precision in [Precision::F32, Precision::Bf16] {
+            assert_eq!(precision.to_string().parse::<Precision>(), Ok(precision));
+        }
+        assert_eq!(" BF16 ".parse::<Precision>(), Ok(Precision::Bf16));
+        let error = "fp16".parse::<Precision>().unwrap_err();
+        assert!(error.contains("fp16") && error.contains("bf16"), "{error}");
+    }
+
+    #[test]
+    fn bf16_is_refused_exactly_where_there_are_no_tiles() {
+        assert_eq!(Precision::F32.check_machine(), Ok(()));
+        let bf16 = Precision::Bf16.check_machine();
+        if amx::available() {
+            assert_eq!(bf16, Ok(()));
+        } else {
+            let message = bf16.unwrap_err().to_string();
+            assert!(
+                message.contains("AMX") && message.contains("f32"),
+                "{message}"
+            );
+        }
+    }
+}
