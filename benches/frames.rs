@@ -138,9 +138,9 @@ fn main() {
         .filter(|c| classical_only || filter.as_ref().is_none_or(|f| c.name.contains(f.as_str())))
         .collect();
     println!(
-        "| weights | arithmetic | case | grid scale | threads | ms/frame (median) | recall | precision |"
+        "| weights | arithmetic | case | grid scale | threads | ms/frame (median) | network / screen / refine ms | recall | precision |"
     );
-    println!("| --- | --- | --- | --- | --- | --- | --- | --- |");
+    println!("| --- | --- | --- | --- | --- | --- | --- | --- | --- |");
     let runs = models
         .iter()
         .flat_map(|(name, model)| precisions.iter().map(move |p| (*name, model, *p)));
@@ -173,20 +173,26 @@ fn main() {
                     .build()
                     .unwrap();
                 let (mut ms, mut totals) = (Vec::new(), (0, 0, 0));
+                let mut stages = Vec::new();
                 for (frame, truth) in &scenes {
                     let start = Instant::now();
                     let outcome = pool
                         .install(|| matcher.match_one(&template, frame, &options))
                         .unwrap();
                     ms.push(start.elapsed().as_secs_f64() * 1e3);
+                    let t = &outcome.timings;
+                    stages.push((t.network_ms, t.screen_ms, t.refine_ms));
                     let (h, d, t) = count(&outcome.poses, truth, &case.part);
                     totals = (totals.0 + h, totals.1 + d, totals.2 + t);
                 }
-                ms.sort_by(f64::total_cmp);
+                let mut order: Vec<usize> = (0..ms.len()).collect();
+                order.sort_by(|a, b| ms[*a].total_cmp(&ms[*b]));
+                let median = order[ms.len() / 2];
+                let (network, screen, refine) = stages[median];
                 println!(
-                    "| {name} | {precision} | {} | {grid_scale} | {threads} | {:.1} | {:.3} | {:.3} |",
+                    "| {name} | {precision} | {} | {grid_scale} | {threads} | {:.1} | {network:.0} / {screen:.0} / {refine:.0} | {:.3} | {:.3} |",
                     case.name,
-                    ms[ms.len() / 2],
+                    ms[median],
                     totals.0 as f64 / totals.2.max(1) as f64,
                     totals.0 as f64 / totals.1.max(1) as f64,
                 );

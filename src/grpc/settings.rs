@@ -363,6 +363,21 @@ mod tests {
             convention.contains("convention") && convention.contains("imagenet"),
             "{convention}"
         );
+        let precision = err(&[("POSEMATCH__PRECISION", "fp16")]);
+        assert!(
+            precision.contains("precision") && precision.contains("bf16"),
+            "{precision}"
+        );
+        // bf16 starts exactly where the CPU has AMX tiles; elsewhere the start fails saying so.
+        let bf16 = Settings::load(
+            None,
+            env(&[("POSEMATCH__PRECISION", "bf16")]),
+            &Overrides::default(),
+        );
+        match crate::model::Precision::Bf16.check_machine() {
+            Ok(()) => assert_eq!(bf16.unwrap().precision, crate::model::Precision::Bf16),
+            Err(_) => assert!(bf16.unwrap_err().to_string().contains("AMX")),
+        }
         assert!(err(&[("POSEMATCH__LISTEN", "nowhere")]).contains("listen"));
         assert!(err(&[("POSEMATCH__QUEUE_SIZE", "many")]).contains("queue_size"));
         assert!(err(&[("POSEMATCH__LOG_FORMAT", "xml")]).contains("log_format"));

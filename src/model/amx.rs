@@ -73,11 +73,53 @@ fn from_bf16(value: u16) -> f32 {
     f32::from_bits((value as u32) << 16)
 }
 
-/// Rounds `values` into `out` (same length).
+/// Rounds `values` into `out` (same length), 16 at a time with AVX-512 BF16 where the CPU has
+/// it (every CPU with AMX does).
 pub fn round_into(values: &[f32], out: &mut [u16]) {
-    for (o, v) in out.iter_mut().zip(values) {
+    assert_eq!(
+        values.len(),
+        out.len(),
+        "round_into: lengths differ; this is a bug"
+    );
+    let mut done = 0;
+    #[cfg(target_arch = "x86_64")]
+    if std::arch::is_x86_feature_detected!("avx512bf16") {
+        // SAFETY: the CPU has AVX-512 BF16 (checked just above).
+        done = unsafe { round_into_avx512(values, out) };
+    }
+    for (o, v) in out[done..].iter_mut().zip(&values[done..]) {
         *o = to_bf16(*v);
     }
+}
+
+/// Rounds the leading multiple of 16 values; returns how many.
+///
+/// # Safety
+/// The CPU must have AVX-512F and AVX-512 BF16.
+#[cfg(target_arch = "x86_64")]
+#[target_feature(enable = "avx512f,avx512bf16")]
+unsafe fn round_into_avx512(values: &[f32], out: &mut [u16]) -> usize {
+    use std::arch::x86_64::{__m256i, _mm256_storeu_si256, _mm512_cvtneps_pbh, _mm512_loadu_ps};
+    let whole = values.len().min(out.len()) / 16 * 16;
+    for start in (0..whole).step_by(16) {
+        // SAFETY: 16 values from `start` lie inside both slices (start + 16 <= whole).
+        unsafe {
+            let rounded = _mm512_cvtneps_pbh(_mm512_loadu_ps(values.as_ptr().add(start)));
+            let bits: __m256i = std::mem::transmute(rounded);
+            _mm256_storeu_si256(out.as_mut_ptr().add(start).cast(), bits);
+        }
+    }
+    whole
+}
+
+/// `values` rounded to bf16, in parallel.
+pub fn rounded(values: &[f32]) -> Vec<u16> {
+    const CHUNK: usize = 64 * 1024;
+    let mut out = vec![0u16; values.len()];
+    out.par_chunks_mut(CHUNK)
+        .zip(values.par_chunks(CHUNK))
+        .for_each(|(out, values)| round_into(values, out));
+    out
 }
 
 /// Rows a left-hand side of `m` rows must hold: the kernel reads whole 32-row blocks (rows past

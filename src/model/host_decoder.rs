@@ -9,6 +9,8 @@
 //! NCHW↔NHWC around every layer and builds the whole im2col matrix at once; on the two-core target
 //! machine this path is about twice as fast. Training keeps burn's modules (autodiff).
 
+use std::borrow::Cow;
+
 use burn::prelude::*;
 use rayon::prelude::*;
 
@@ -34,7 +36,8 @@ struct Conv3x3 {
 
 /// An element of im2col patches: f32 for the exact path, bf16 bits for the tiles.
 trait Patch: Copy + Default + Send + Sync {
-    fn from_f32(value: f32) -> Self;
+    /// A layer's input in this element type (f32: the input itself).
+    fn convert(input: &[f32]) -> Cow<'_, [Self]>;
     /// Values per patch row (9 · cin, padded to the tiles' k steps for bf16).
     fn row_len(conv: &Conv3x3) -> usize;
     /// Patch rows a buffer for `pixels` pixels must hold.
@@ -44,8 +47,8 @@ trait Patch: Copy + Default + Send + Sync {
 }
 
 impl Patch for f32 {
-    fn from_f32(value: f32) -> Self {
-        value
+    fn convert(input: &[f32]) -> Cow<'_, [f32]> {
+        Cow::Borrowed(input)
     }
 
     fn row_len(conv: &Conv3x3) -> usize {
@@ -62,8 +65,8 @@ impl Patch for f32 {
 }
 
 impl Patch for u16 {
-    fn from_f32(value: f32) -> Self {
-        amx::to_bf16(value)
+    fn convert(input: &[f32]) -> Cow<'_, [u16]> {
+        Cow::Owned(amx::rounded(input))
     }
 
     fn row_len(conv: &Conv3x3) -> usize {
@@ -152,7 +155,7 @@ impl Conv3x3 {
     /// Fills `patches` (`[rows * width, T::row_len]`) for output rows `y0..y0 + rows`.
     fn im2col<T: Patch>(
         &self,
-        input: &[f32],
+        input: &[T],
         height: usize,
         width: usize,
         y0: usize,
@@ -176,9 +179,7 @@ impl Conv3x3 {
                         dst.fill(T::default());
                     } else {
                         let src = (sy as usize * width + sx as usize) * cin;
-                        for (d, v) in dst.iter_mut().zip(&input[src..src + cin]) {
-                            *d = T::from_f32(*v);
-                        }
+                        dst.copy_from_slice(&input[src..src + cin]);
                     }
                 }
             }
@@ -231,6 +232,7 @@ impl Conv3x3 {
     }
 
     fn forward_with<T: Patch>(&self, input: &[f32], height: usize, width: usize) -> Vec<f32> {
+        let input = T::convert(input);
         let rows = self.chunk_rows::<T>(width);
         let mut out = vec![0f32; height * width * self.cout];
         out.par_chunks_mut(rows * width * self.cout)
@@ -240,7 +242,7 @@ impl Conv3x3 {
                 |patches, (chunk, out)| {
                     let y0 = chunk * rows;
                     let n = (height - y0).min(rows);
-                    self.im2col(input, height, width, y0, n, patches);
+                    self.im2col(&input, height, width, y0, n, patches);
                     T::multiply(self, patches, n * width, out);
                 },
             );
@@ -364,6 +366,7 @@ impl HeadsCpu {
         width: usize,
         pose: PoseHeads,
     ) -> Vec<f32> {
+        let input = T::convert(input);
         let rows = self.hidden.chunk_rows::<T>(width);
         let k = T::row_len(&self.hidden);
         let mut pixel_major = vec![0f32; height * width * 5];
@@ -382,7 +385,7 @@ impl HeadsCpu {
                 |(patches, features, gathered, selected), (chunk, out)| {
                     let y0 = chunk * rows;
                     let n = (height - y0).min(rows);
-                    self.hidden.im2col(input, height, width, y0, n, patches);
+                    self.hidden.im2col(&input, height, width, y0, n, patches);
                     let out = &mut out[..n * width * 5];
                     match pose {
                         PoseHeads::Everywhere => {
