@@ -188,11 +188,12 @@ impl RunningServer {
                 .and_then(|r| r);
             match (opened, loaded) {
                 (Ok((store, templates)), Ok(matcher)) => {
+                    let precision = matcher.network().precision();
                     let built =
                         Arc::new(Engine::start(&config, store, templates, matcher, metrics));
                     let _ = engine.set(built.clone());
                     // Logged once requests can be answered (tests wait for this line).
-                    tracing::info!("model loaded");
+                    tracing::info!(%precision, "model loaded");
                     report_health(built, health, move || {
                         let _ = ready_tx.send(Some(Ok(())));
                     })
