@@ -122,38 +122,36 @@ fn benches(c: &mut Criterion) {
         );
         let least = 0.5 * posematch::matcher::MatchOptions::default().candidate_threshold;
         group.throughput(Throughput::Elements(1));
-        group.bench_function("search_224_batch_1_pose_heads_at_peaks", |b| {
-            b.iter(|| {
-                let maps = matcher.network().forward_for_peaks(
-                    images.clone(),
-                    encoded.kernel.clone(),
-                    posematch::model::PoseHeads::WhereScoreAtLeast(least),
-                );
-                maps.stacked.into_data()
-            })
-        });
         // The same search with the products in bf16 on AMX tiles, where this CPU has them.
-        match Precision::Bf16.check_machine() {
-            Ok(()) => {
-                let bf16 = Matcher::new(
+        let bf16 = match Precision::Bf16.check_machine() {
+            Ok(()) => Some(
+                Matcher::new(
                     matcher.network().model().clone(),
                     device.clone(),
                     InputConvention::ImagenetRgb,
                 )
                 .with_precision(Precision::Bf16)
-                .unwrap();
-                group.bench_function("search_224_batch_1_pose_heads_at_peaks_bf16", |b| {
-                    b.iter(|| {
-                        let maps = bf16.network().forward_for_peaks(
-                            images.clone(),
-                            encoded.kernel.clone(),
-                            posematch::model::PoseHeads::WhereScoreAtLeast(least),
-                        );
-                        maps.stacked.into_data()
-                    })
-                });
+                .unwrap(),
+            ),
+            Err(e) => {
+                println!("bf16 search not measured: {e}");
+                None
             }
-            Err(e) => println!("bf16 search not measured: {e}"),
+        };
+        let searches = [("", Some(&matcher)), ("_bf16", bf16.as_ref())];
+        for (suffix, searcher) in searches {
+            let Some(searcher) = searcher else { continue };
+            let name = format!("search_224_batch_1_pose_heads_at_peaks{suffix}");
+            group.bench_function(name, |b| {
+                b.iter(|| {
+                    let maps = searcher.network().forward_for_peaks(
+                        images.clone(),
+                        encoded.kernel.clone(),
+                        posematch::model::PoseHeads::WhereScoreAtLeast(least),
+                    );
+                    maps.stacked.into_data()
+                })
+            });
         }
     }
     // Decode alone: peaks, sub-pixel centres and parameters from one 224x224 set of maps.

@@ -13,6 +13,7 @@ use burn::nn::{
 use burn::prelude::*;
 
 use super::amx::{self, Bf16Weights};
+use super::host_decoder::values;
 
 /// ConvNeXt LayerNorm epsilon (timm default for ConvNeXt-V2).
 const LAYER_NORM_EPS: f64 = 1e-6;
@@ -193,11 +194,6 @@ impl PointwiseBf16 {
 
 fn linear_weights(linear: &Linear) -> Bf16Weights {
     let [k, n] = linear.weight.dims();
-    let values = |t: Tensor<1>| -> Vec<f32> {
-        t.into_data()
-            .try_into_vec()
-            .expect("parameters are f32; this is a bug")
-    };
     let matrix = values(linear.weight.val().reshape([k * n]));
     let bias = linear
         .bias

@@ -82,7 +82,8 @@ impl Patch for u16 {
     }
 }
 
-fn values(t: Tensor<1>) -> Vec<f32> {
+/// A parameter vector's values.
+pub(super) fn values(t: Tensor<1>) -> Vec<f32> {
     t.into_data()
         .try_into_vec()
         .expect("parameters are f32; this is a bug")
