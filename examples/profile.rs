@@ -1,6 +1,7 @@
 //! Where the time of one 224x224 search forward goes, stage by stage (burn's generic ops; the
 //! fused CPU paths replace some of them in the real forward).
-//! `cargo run --release --example profile [batch] [--whole]`
+//! `cargo run --release --example profile [batch] [--whole] [--size N] [--bf16]` (search image
+//! N x N, default 224; `--bf16`: the network's products on AMX tiles).
 
 use std::time::Instant;
 
@@ -31,15 +32,32 @@ fn main() {
     // `profile [batch] [--whole]`: `--whole` times only the full forward (for `perf record`).
     let args: Vec<String> = std::env::args().skip(1).collect();
     let whole_only = args.iter().any(|a| a == "--whole");
-    let batch: usize = args.iter().find_map(|a| a.parse().ok()).unwrap_or(1);
+    let size: usize = args
+        .iter()
+        .position(|a| a == "--size")
+        .and_then(|i| args.get(i + 1)?.parse().ok())
+        .unwrap_or(224);
+    let batch: usize = args
+        .iter()
+        .enumerate()
+        .filter(|&(i, _)| i == 0 || args[i - 1] != "--size")
+        .find_map(|(_, a)| a.parse().ok())
+        .unwrap_or(1);
     let device = select_device().unwrap();
     let model = TdcmConfig::new().init(&device);
     let m = &model.search_matcher;
     // What the matcher runs: the host CPU kernels on flex/ndarray.
-    let network = InferenceNetwork::new(model.clone(), &device);
+    let precision = if args.iter().any(|a| a == "--bf16") {
+        posematch::model::Precision::Bf16
+    } else {
+        posematch::model::Precision::F32
+    };
+    let network = InferenceNetwork::new(model.clone(), &device)
+        .with_precision(precision)
+        .expect("precision available on this machine");
     let runs = 10;
     let images = Tensor::<4>::random(
-        [batch, 3, 224, 224],
+        [batch, 3, size, size],
         Distribution::Normal(0.0, 1.0),
         &device,
     );

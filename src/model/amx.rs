@@ -132,7 +132,6 @@ pub fn padded_rows(m: usize) -> usize {
 /// and each 32-deep step of k, one 1 KiB tile of 16 rows (pairs of k) x 16 columns x 2 bf16;
 /// the bias as one 16-float row per column block (accumulators start from it).
 pub struct Bf16Weights {
-    k: usize,
     n: usize,
     k_steps: usize,
     column_blocks: usize,
@@ -170,17 +169,12 @@ impl Bf16Weights {
             })
             .collect();
         Self {
-            k,
             n,
             k_steps,
             column_blocks,
             tiles,
             bias_rows,
         }
-    }
-
-    pub fn n(&self) -> usize {
-        self.n
     }
 
     /// Row length of the left-hand side these weights multiply: k padded to whole tile steps
@@ -339,32 +333,6 @@ unsafe fn multiply_tiles(lhs: &[u16], m: usize, weights: &Bf16Weights, out: &mut
     }
 }
 
-/// A linear layer over f32 rows: `out[i] = input[i] · weights + bias` for the `input.len() / k`
-/// rows, in parallel chunks that round their rows to bf16 just before multiplying (the bf16
-/// copy of a chunk stays in cache).
-pub fn linear(input: &[f32], weights: &Bf16Weights, out: &mut [f32]) {
-    /// Rows per parallel chunk: 256 rows of 384 bf16 = 192 KiB.
-    const CHUNK_ROWS: usize = 8 * BLOCK_ROWS;
-    let (k, n, stride) = (weights.k, weights.n, weights.lhs_stride());
-    let rows = input.len() / k;
-    assert!(
-        input.len() == rows * k && out.len() == rows * n,
-        "linear: input or out is not [rows, k] / [rows, n]; this is a bug"
-    );
-    out.par_chunks_mut(CHUNK_ROWS * n)
-        .zip(input.par_chunks(CHUNK_ROWS * k))
-        .for_each_init(
-            || vec![0u16; CHUNK_ROWS * stride],
-            |lhs, (out, input)| {
-                let m = input.len() / k;
-                for (row, values) in lhs.chunks_exact_mut(stride).zip(input.chunks_exact(k)) {
-                    round_into(values, &mut row[..k]);
-                }
-                multiply(lhs, m, weights, out);
-            },
-        );
-}
-
 #[cfg(test)]
 mod tests {
     use super::*;
@@ -402,7 +370,12 @@ mod tests {
             let bias: Vec<f32> = (0..n).map(|_| random()).collect();
             let weights = Bf16Weights::new(&matrix, k, n, &bias);
             let mut out = vec![f32::NAN; m * n];
-            linear(&input, &weights, &mut out);
+            let stride = weights.lhs_stride();
+            let mut lhs = vec![0u16; padded_rows(m) * stride];
+            for (row, values) in lhs.chunks_exact_mut(stride).zip(input.chunks_exact(k)) {
+                round_into(values, &mut row[..k]);
+            }
+            multiply(&lhs, m, &weights, &mut out);
             let rounded = |v: f32| from_bf16(to_bf16(v)) as f64;
             for i in 0..m {
                 for j in 0..n {

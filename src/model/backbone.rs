@@ -12,13 +12,10 @@ use burn::nn::{
 };
 use burn::prelude::*;
 
-use super::amx::{self, Bf16Weights};
-use super::host_decoder::values;
-
 /// ConvNeXt LayerNorm epsilon (timm default for ConvNeXt-V2).
-const LAYER_NORM_EPS: f64 = 1e-6;
+pub(crate) const LAYER_NORM_EPS: f64 = 1e-6;
 /// GRN denominator epsilon.
-const GRN_EPS: f64 = 1e-6;
+pub(crate) const GRN_EPS: f64 = 1e-6;
 /// BatchNorm epsilon (PyTorch default).
 pub(crate) const BATCH_NORM_EPS: f64 = 1e-5;
 
@@ -91,24 +88,13 @@ impl Backbone {
         images: Tensor<4>,
         gelu_grn: GeluGrn,
     ) -> (Tensor<4>, BackboneTrace) {
-        self.forward_with(images, gelu_grn, None)
-    }
-
-    /// [`Backbone::forward_traced`] with the blocks' pointwise layers in bf16 when `pointwise`
-    /// holds one [`PointwiseBf16`] per block (host inference at [`super::Precision::Bf16`]).
-    pub(crate) fn forward_with(
-        &self,
-        images: Tensor<4>,
-        gelu_grn: GeluGrn,
-        pointwise: Option<&[PointwiseBf16]>,
-    ) -> (Tensor<4>, BackboneTrace) {
         let x = self.stem_conv.forward(images); // [b, 96, h, w]
         // LayerNorm over channels: work channels-last for the whole stage.
         let x = self.stem_norm.forward(x.permute([0, 2, 3, 1])); // [b, h, w, 96]
         let stem = x.clone().permute([0, 3, 1, 2]);
         let mut x = stem.clone();
-        for (i, block) in self.blocks.iter().enumerate() {
-            x = block.forward_with(x, gelu_grn, pointwise.map(|layers| &layers[i]));
+        for block in &self.blocks {
+            x = block.forward(x, gelu_grn);
         }
         let stage1 = x.clone();
         let out = self.norm.forward(x); // [b, 96, h, w]
@@ -147,21 +133,9 @@ impl ConvNextBlock {
     /// # Shapes
     /// - `x`: `[batch, channels, h, w]` → same
     pub fn forward(&self, x: Tensor<4>, gelu_grn: GeluGrn) -> Tensor<4> {
-        self.forward_with(x, gelu_grn, None)
-    }
-
-    fn forward_with(
-        &self,
-        x: Tensor<4>,
-        gelu_grn: GeluGrn,
-        pointwise: Option<&PointwiseBf16>,
-    ) -> Tensor<4> {
         let y = self.conv_dw.forward(x.clone()); // [b, 96, h, w]
         let y = self.norm.forward(y.permute([0, 2, 3, 1])); // [b, h, w, 96]
-        let y = match pointwise {
-            Some(layers) => pointwise_bf16(&layers.fc1, y),
-            None => self.fc1.forward(y),
-        }; // [b, h, w, 384]
+        let y = self.fc1.forward(y); // [b, h, w, 384]
         let y = match gelu_grn {
             // Same function, two passes instead of many (see `fused`).
             GeluGrn::Fused => {
@@ -169,50 +143,9 @@ impl ConvNextBlock {
             }
             GeluGrn::Modules => self.grn.forward(self.activation.forward(y)),
         };
-        let y = match pointwise {
-            Some(layers) => pointwise_bf16(&layers.fc2, y),
-            None => self.fc2.forward(y),
-        }; // [b, h, w, 96]
+        let y = self.fc2.forward(y); // [b, h, w, 96]
         x + y.permute([0, 3, 1, 2])
     }
-}
-
-/// A block's two pointwise layers laid out for the AMX tiles, built once from its weights.
-pub(crate) struct PointwiseBf16 {
-    fc1: Bf16Weights,
-    fc2: Bf16Weights,
-}
-
-impl PointwiseBf16 {
-    pub(crate) fn new(block: &ConvNextBlock) -> Self {
-        Self {
-            fc1: linear_weights(&block.fc1),
-            fc2: linear_weights(&block.fc2),
-        }
-    }
-}
-
-fn linear_weights(linear: &Linear) -> Bf16Weights {
-    let [k, n] = linear.weight.dims();
-    let matrix = values(linear.weight.val().reshape([k * n]));
-    let bias = linear
-        .bias
-        .as_ref()
-        .map_or(vec![0.0; n], |bias| values(bias.val()));
-    Bf16Weights::new(&matrix, k, n, &bias)
-}
-
-/// A channels-last `[b, h, w, k]` map through a bf16 pointwise layer → `[b, h, w, n]`.
-fn pointwise_bf16(weights: &Bf16Weights, x: Tensor<4>) -> Tensor<4> {
-    let [b, h, w, _] = x.dims();
-    let device = x.device();
-    let input: Vec<f32> = x
-        .into_data()
-        .try_into_vec()
-        .expect("activations are f32; this is a bug");
-    let mut out = vec![0f32; b * h * w * weights.n()];
-    amx::linear(&input, weights, &mut out);
-    Tensor::from_data(TensorData::new(out, [b, h, w, weights.n()]), &device)
 }
 
 /// ConvNeXt-V2 Global Response Normalisation over a channels-last map.

@@ -16,6 +16,7 @@ use rayon::prelude::*;
 
 use super::Precision;
 use super::amx::{self, Bf16Weights};
+use super::host_ops::{matmul_bias, relu_in_place, values};
 use super::tdcm::{HEAD_SCALE_MAX, HEAD_SCALE_MIN, Heads, SearchMatcher};
 use burn::nn::BatchNorm;
 use burn::nn::conv::Conv2d;
@@ -80,13 +81,6 @@ impl Patch for u16 {
     fn multiply(conv: &Conv3x3, patches: &[u16], pixels: usize, out: &mut [f32]) {
         amx::multiply(patches, pixels, conv.bf16_weights(), out);
     }
-}
-
-/// A parameter vector's values.
-pub(super) fn values(t: Tensor<1>) -> Vec<f32> {
-    t.into_data()
-        .try_into_vec()
-        .expect("parameters are f32; this is a bug")
 }
 
 impl Conv3x3 {
@@ -190,37 +184,7 @@ impl Conv3x3 {
     /// `out[rows * width, cout] = patches · matrix + bias`.
     fn multiply(&self, patches: &[f32], pixels: usize, out: &mut [f32]) {
         let (k, n) = (9 * self.cin, self.cout);
-        assert!(
-            patches.len() >= pixels * k && out.len() >= pixels * n && self.matrix.len() == k * n
-        );
-        for row in out.chunks_exact_mut(n).take(pixels) {
-            row.copy_from_slice(&self.bias);
-        }
-        // SAFETY: the three buffers are distinct, row-major and at least as large as the
-        // dimensions passed (asserted above); gemm reads lhs/rhs and writes dst within them.
-        unsafe {
-            gemm::gemm(
-                pixels,
-                n,
-                k,
-                out.as_mut_ptr(),
-                1,
-                n as isize,
-                true,
-                patches.as_ptr(),
-                1,
-                k as isize,
-                self.matrix.as_ptr(),
-                1,
-                n as isize,
-                1.0,
-                1.0,
-                false,
-                false,
-                false,
-                gemm::Parallelism::None,
-            );
-        }
+        matmul_bias(patches, pixels, k, &self.matrix, n, &self.bias, out);
     }
 
     /// The convolution over a whole channels-last image: `[h * w, cin]` → `[h * w, cout]`.
@@ -249,10 +213,6 @@ impl Conv3x3 {
             );
         out
     }
-}
-
-fn relu_in_place(values: &mut [f32]) {
-    values.iter_mut().for_each(|v| *v = v.max(0.0));
 }
 
 /// PixelShuffle(2) channels-last: `[h, w, 4c]` → `[2h, 2w, c]` (rows follow from the length),
@@ -446,17 +406,12 @@ fn sigmoid(x: f32) -> f32 {
     1.0 / (1.0 + (-x).exp())
 }
 
-/// Pre-activation intermediates, for the parity fixtures.
+/// One sample's intermediates, channels-last, for the parity fixtures: the fusion
+/// convolution's output `[h, w, 96]` and the two pre-ReLU BatchNorm outputs.
 pub struct HostTrace {
-    pub fusion: Tensor<4>,
-    pub bn1: Tensor<4>,
-    pub bn2: Tensor<4>,
-}
-
-fn nchw_tensor(nhwc: &[Vec<f32>], h: usize, w: usize, c: usize, device: &Device) -> Tensor<4> {
-    let data: Vec<f32> = nhwc.iter().flatten().copied().collect();
-    Tensor::<4>::from_data(TensorData::new(data, [nhwc.len(), h, w, c]), device)
-        .permute([0, 3, 1, 2])
+    pub fusion: Vec<f32>,
+    pub bn1: Vec<f32>,
+    pub bn2: Vec<f32>,
 }
 
 /// Decoder + heads on the host CPU, with BatchNorm folded and every weight laid out for the
@@ -487,46 +442,30 @@ impl HostDecoder {
         self.heads.set_precision(precision);
     }
 
-    /// # Shapes
-    /// - `correlation`: `[batch, 96, h, w]`
-    /// - output: `[batch, 5, 4h, 4w]` maps, and the intermediates when `trace`
+    /// One sample's channels-last correlation `[h, w, 96]` → its five maps `[5, 4h, 4w]`
+    /// (planes), and the intermediates when `trace`.
     pub fn forward(
         &self,
-        correlation: Tensor<4>,
+        correlation: &[f32],
+        h: usize,
+        w: usize,
         trace: bool,
         pose: PoseHeads,
-    ) -> (Tensor<4>, Option<HostTrace>) {
-        let device = correlation.device();
-        let [b, c, h, w] = correlation.dims();
-        let input: Vec<f32> = correlation
-            .permute([0, 2, 3, 1])
-            .into_data()
-            .try_into_vec()
-            .expect("activations are f32; this is a bug");
-        let mut maps = Vec::with_capacity(b * 5 * 16 * h * w);
-        let (mut fusions, mut bn1s, mut bn2s) = (Vec::new(), Vec::new(), Vec::new());
-        for sample in input.chunks_exact(h * w * c) {
-            let fused = self.fusion.forward(sample, h, w); // [h, w, 96]
-            let mut x = self.conv1.forward(&fused, h, w); // [h, w, 192]
-            if trace {
-                fusions.push(fused);
-                bn1s.push(x.clone());
-            }
-            relu_in_place(&mut x);
-            let x = pixel_shuffle(&x, w, self.conv1.cout); // [2h, 2w, 48]
-            let mut x = self.conv2.forward(&x, 2 * h, 2 * w); // [2h, 2w, 96]
-            if trace {
-                bn2s.push(x.clone());
-            }
-            relu_in_place(&mut x);
-            let x = pixel_shuffle(&x, 2 * w, self.conv2.cout); // [4h, 4w, 24]
-            maps.extend(self.heads.forward(&x, 4 * h, 4 * w, pose)); // [5, 4h, 4w]
-        }
-        let maps = Tensor::from_data(TensorData::new(maps, [b, 5, 4 * h, 4 * w]), &device);
+    ) -> (Vec<f32>, Option<HostTrace>) {
+        let fused = self.fusion.forward(correlation, h, w); // [h, w, 96]
+        let mut x = self.conv1.forward(&fused, h, w); // [h, w, 192]
+        let bn1 = trace.then(|| x.clone());
+        relu_in_place(&mut x);
+        let x = pixel_shuffle(&x, w, self.conv1.cout); // [2h, 2w, 48]
+        let mut x = self.conv2.forward(&x, 2 * h, 2 * w); // [2h, 2w, 96]
+        let bn2 = trace.then(|| x.clone());
+        relu_in_place(&mut x);
+        let x = pixel_shuffle(&x, 2 * w, self.conv2.cout); // [4h, 4w, 24]
+        let maps = self.heads.forward(&x, 4 * h, 4 * w, pose);
         let trace = trace.then(|| HostTrace {
-            fusion: nchw_tensor(&fusions, h, w, self.fusion.cout, &device),
-            bn1: nchw_tensor(&bn1s, h, w, self.conv1.cout, &device),
-            bn2: nchw_tensor(&bn2s, 2 * h, 2 * w, self.conv2.cout, &device),
+            fusion: fused,
+            bn1: bn1.expect("traced"),
+            bn2: bn2.expect("traced"),
         });
         (maps, trace)
     }
@@ -542,19 +481,15 @@ mod tests {
         let device = Default::default();
         let model = TdcmConfig::new().init(&device);
         let decoder = HostDecoder::new(&model.search_matcher);
-        let correlation = Tensor::<4>::random(
-            [1, 96, 9, 11],
+        let correlation: Vec<f32> = Tensor::<1>::random(
+            [9 * 11 * 96],
             burn::tensor::Distribution::Normal(0.0, 1.0),
             &device,
-        );
-        let planes = |pose| -> Vec<f32> {
-            decoder
-                .forward(correlation.clone(), false, pose)
-                .0
-                .into_data()
-                .try_into_vec()
-                .unwrap()
-        };
+        )
+        .into_data()
+        .try_into_vec()
+        .unwrap();
+        let planes = |pose| decoder.forward(&correlation, 9, 11, false, pose).0;
         let full = planes(PoseHeads::Everywhere);
         let n = full.len() / 5;
         let mut scores = full[..n].to_vec();

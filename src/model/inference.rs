@@ -1,24 +1,97 @@
 //! The network as the matcher runs it: for answers, not gradients. Built once from loaded
-//! weights, it chooses its kernels then: on the host CPU (flex, ndarray) the fused GELU+GRN
-//! kernel and the [`HostDecoder`] (BatchNorm folded, weights laid out for the gemms — once, not
-//! per call); anywhere else burn's modules, exactly as training runs them. Both paths compute the
+//! weights, it chooses its kernels then: on the host CPU (flex, ndarray) the channels-last
+//! [`HostBackbone`] and [`HostDecoder`] for the search branch (BatchNorm folded, weights laid
+//! out for the products — once, not per call) and the fused GELU+GRN kernel in the template
+//! branch; anywhere else burn's modules, exactly as training runs them. Both paths compute the
 //! same function; the parity tests check each one explicitly against the official fixtures.
 
 use burn::prelude::*;
 
-use super::backbone::{BackboneTrace, GeluGrn, PointwiseBf16};
+use super::backbone::{BackboneTrace, GeluGrn};
 use super::device::is_host_cpu;
+use super::host_backbone::{HostBackbone, correlate};
 use super::host_decoder::{HostDecoder, PoseHeads};
-use super::tdcm::{MatchMaps, SearchTrace, Tdcm, depthwise_correlation};
+use super::tdcm::{MatchMaps, SearchTrace, Tdcm};
 use super::{Precision, PrecisionError};
 
 /// Loaded weights plus the kernels chosen to run them.
 pub struct InferenceNetwork {
     model: Tdcm,
     /// `Some` when inference runs on the host CPU kernels.
-    host: Option<HostDecoder>,
-    /// The search backbone's pointwise layers for the AMX tiles, at [`Precision::Bf16`].
-    pointwise: Option<Vec<PointwiseBf16>>,
+    host: Option<HostSearch>,
+}
+
+/// The search branch on the host CPU kernels.
+struct HostSearch {
+    backbone: HostBackbone,
+    decoder: HostDecoder,
+    precision: Precision,
+}
+
+/// One search sample through the host kernels: the maps `[5, 4h, 4w]` (planes), and the
+/// intermediates when traced.
+struct HostSample {
+    maps: Vec<f32>,
+    trace: Option<HostSampleTrace>,
+}
+
+/// Channels-last intermediates of one sample, for the parity fixtures.
+struct HostSampleTrace {
+    stem: Vec<f32>,
+    stage1: Vec<f32>,
+    features: Vec<f32>,
+    correlation: Vec<f32>,
+    decoder: super::host_decoder::HostTrace,
+}
+
+impl HostSearch {
+    fn new(model: &Tdcm) -> Self {
+        Self {
+            backbone: HostBackbone::new(&model.search_matcher.backbone),
+            decoder: HostDecoder::new(&model.search_matcher),
+            precision: Precision::F32,
+        }
+    }
+
+    /// `image`: planar `[3, height, width]`; `kernels`: `[channels, k, k]`.
+    #[allow(clippy::too_many_arguments)]
+    fn sample(
+        &self,
+        image: &[f32],
+        height: usize,
+        width: usize,
+        kernels: &[f32],
+        k: usize,
+        trace: bool,
+        pose: PoseHeads,
+    ) -> HostSample {
+        let out = self.backbone.forward(image, height, width, trace);
+        let (h, w) = (out.height, out.width);
+        let correlation = correlate(&out.features, h, w, kernels, k);
+        let (maps, decoder) = self.decoder.forward(&correlation, h, w, trace, pose);
+        let trace = decoder.map(|decoder| HostSampleTrace {
+            stem: out.stem.expect("traced"),
+            stage1: out.stage1.expect("traced"),
+            features: out.features,
+            correlation,
+            decoder,
+        });
+        HostSample { maps, trace }
+    }
+}
+
+/// A tensor's values in logical (row-major) order.
+fn host_values(t: Tensor<4>) -> Vec<f32> {
+    t.into_data()
+        .try_into_vec()
+        .expect("activations are f32; this is a bug")
+}
+
+/// Channels-last samples `[h, w, c]` → one `[batch, c, h, w]` tensor.
+fn nchw_tensor(samples: &[&[f32]], h: usize, w: usize, c: usize, device: &Device) -> Tensor<4> {
+    let data: Vec<f32> = samples.iter().flat_map(|s| s.iter().copied()).collect();
+    Tensor::<4>::from_data(TensorData::new(data, [samples.len(), h, w, c]), device)
+        .permute([0, 3, 1, 2])
 }
 
 impl InferenceNetwork {
@@ -34,21 +107,13 @@ impl InferenceNetwork {
 
     /// The host CPU kernels, whatever the device (they read every tensor into host memory).
     pub fn host(model: Tdcm) -> Self {
-        let host = Some(HostDecoder::new(&model.search_matcher));
-        Self {
-            model,
-            host,
-            pointwise: None,
-        }
+        let host = Some(HostSearch::new(&model));
+        Self { model, host }
     }
 
     /// burn's modules throughout, as training and GPU devices run them.
     pub fn modules(model: Tdcm) -> Self {
-        Self {
-            model,
-            host: None,
-            pointwise: None,
-        }
+        Self { model, host: None }
     }
 
     /// Runs the search branch's large products (backbone pointwise layers, decoder and head
@@ -56,27 +121,23 @@ impl InferenceNetwork {
     /// cost is negligible). Refused where the machine or the device cannot run it.
     pub fn with_precision(mut self, precision: Precision) -> Result<Self, PrecisionError> {
         precision.check_machine()?;
-        let Some(decoder) = &mut self.host else {
+        let Some(host) = &mut self.host else {
             return match precision {
                 Precision::F32 => Ok(self),
                 Precision::Bf16 => Err(PrecisionError::NotHostCpu),
             };
         };
-        decoder.set_precision(precision);
-        self.pointwise = (precision == Precision::Bf16).then(|| {
-            let blocks = &self.model.search_matcher.backbone.blocks;
-            blocks.iter().map(PointwiseBf16::new).collect()
-        });
+        host.backbone.set_precision(precision);
+        host.decoder.set_precision(precision);
+        host.precision = precision;
         Ok(self)
     }
 
     /// The arithmetic of the search branch's products.
     pub fn precision(&self) -> Precision {
-        if self.pointwise.is_some() {
-            Precision::Bf16
-        } else {
-            Precision::F32
-        }
+        self.host
+            .as_ref()
+            .map_or(Precision::F32, |host| host.precision)
     }
 
     pub fn model(&self) -> &Tdcm {
@@ -128,52 +189,88 @@ impl InferenceNetwork {
         kernels: Tensor<4>,
         pose: PoseHeads,
     ) -> MatchMaps {
-        let Some(decoder) = &self.host else {
+        let Some(host) = &self.host else {
             return self.model.search_matcher.forward(images, kernels);
         };
-        let backbone = &self.model.search_matcher.backbone;
-        let per_sample = (0..images.dims()[0])
-            .map(|i| {
-                let (features, _) = backbone.forward_with(
-                    images.clone().narrow(0, i, 1),
-                    GeluGrn::Fused,
-                    self.pointwise.as_deref(),
-                );
-                let correlation = depthwise_correlation(features, kernels.clone().narrow(0, i, 1));
-                decoder.forward(correlation, false, pose).0
-            })
-            .collect();
+        let device = images.device();
+        let [batch, planes, height, width] = images.dims();
+        let [_, channels, k, _] = kernels.dims();
+        let (images, kernels) = (host_values(images), host_values(kernels));
+        let image_len = planes * height * width;
+        let kernel_len = channels * k * k;
+        let mut maps = Vec::new();
+        for i in 0..batch {
+            let sample = host.sample(
+                &images[i * image_len..(i + 1) * image_len],
+                height,
+                width,
+                &kernels[i * kernel_len..(i + 1) * kernel_len],
+                k,
+                false,
+                pose,
+            );
+            maps.extend(sample.maps);
+        }
+        let (h, w) = (height / 4, width / 4);
         MatchMaps {
-            stacked: Tensor::cat(per_sample, 0),
+            stacked: Tensor::from_data(TensorData::new(maps, [batch, 5, 4 * h, 4 * w]), &device),
         }
     }
 
-    /// Like [`InferenceNetwork::forward`] (whole batch at once), with every intermediate the
-    /// parity fixtures store.
+    /// Like [`InferenceNetwork::forward`], with every intermediate the parity fixtures store.
     pub fn forward_traced(
         &self,
         images: Tensor<4>,
         kernels: Tensor<4>,
     ) -> (MatchMaps, SearchTrace) {
-        let Some(decoder) = &self.host else {
+        let Some(host) = &self.host else {
             return self.model.search_matcher.forward_traced(images, kernels);
         };
-        let (features, backbone) = self.model.search_matcher.backbone.forward_with(
-            images,
-            GeluGrn::Fused,
-            self.pointwise.as_deref(),
-        );
-        let correlation = depthwise_correlation(features.clone(), kernels);
-        let (stacked, trace) = decoder.forward(correlation.clone(), true, PoseHeads::Everywhere);
-        let trace = trace.expect("trace requested");
-        let search_trace = SearchTrace {
-            backbone,
-            features,
-            correlation,
-            fusion: trace.fusion,
-            bn1: trace.bn1,
-            bn2: trace.bn2,
+        let device = images.device();
+        let [batch, planes, height, width] = images.dims();
+        let [_, channels, k, _] = kernels.dims();
+        let (images, kernels) = (host_values(images), host_values(kernels));
+        let image_len = planes * height * width;
+        let kernel_len = channels * k * k;
+        let samples: Vec<HostSample> = (0..batch)
+            .map(|i| {
+                host.sample(
+                    &images[i * image_len..(i + 1) * image_len],
+                    height,
+                    width,
+                    &kernels[i * kernel_len..(i + 1) * kernel_len],
+                    k,
+                    true,
+                    PoseHeads::Everywhere,
+                )
+            })
+            .collect();
+        let (h, w) = (height / 4, width / 4);
+        let maps: Vec<f32> = samples
+            .iter()
+            .flat_map(|s| s.maps.iter().copied())
+            .collect();
+        let traces: Vec<&HostSampleTrace> = samples
+            .iter()
+            .map(|s| s.trace.as_ref().expect("traced"))
+            .collect();
+        let tensor = |part: fn(&HostSampleTrace) -> &[f32], h: usize, w: usize, c: usize| {
+            let parts: Vec<&[f32]> = traces.iter().map(|t| part(t)).collect();
+            nchw_tensor(&parts, h, w, c, &device)
         };
+        let c = host.backbone.channels();
+        let search_trace = SearchTrace {
+            backbone: BackboneTrace {
+                stem: tensor(|t| &t.stem, h, w, c),
+                stage1: tensor(|t| &t.stage1, h, w, c),
+            },
+            features: tensor(|t| &t.features, h, w, c),
+            correlation: tensor(|t| &t.correlation, h, w, c),
+            fusion: tensor(|t| &t.decoder.fusion, h, w, c),
+            bn1: tensor(|t| &t.decoder.bn1, h, w, 2 * c),
+            bn2: tensor(|t| &t.decoder.bn2, 2 * h, 2 * w, c),
+        };
+        let stacked = Tensor::from_data(TensorData::new(maps, [batch, 5, 4 * h, 4 * w]), &device);
         (MatchMaps { stacked }, search_trace)
     }
 }
