@@ -294,6 +294,7 @@ impl Matcher {
                 peaks_ms += ms_since(t);
             }
         }
+        self.network.release_buffers();
         let count = results.iter().filter(|r| r.is_ok()).count().max(1) as f64;
         for proposal in results.iter_mut().flatten() {
             proposal
@@ -334,8 +335,12 @@ impl Matcher {
         let [b, _, h, w] = stacked.dims();
         let values: Vec<f32> = stacked
             .into_data()
-            .try_to_vec::<f32>()
+            .try_into_vec::<f32>()
             .expect("network output is f32; this is a bug");
+        if b == 1 {
+            // A large tile's maps are tens of megabytes: no copy.
+            return vec![values];
+        }
         values
             .chunks_exact(5 * h * w)
             .take(b)

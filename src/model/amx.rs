@@ -13,8 +13,6 @@
 use std::arch::asm;
 use std::sync::OnceLock;
 
-use rayon::prelude::*;
-
 /// Rows and columns (f32) of one accumulator tile.
 const TILE_ROWS: usize = 16;
 const TILE_COLUMNS: usize = 16;
@@ -110,16 +108,6 @@ unsafe fn round_into_avx512(values: &[f32], out: &mut [u16]) -> usize {
         }
     }
     whole
-}
-
-/// `values` rounded to bf16, in parallel.
-pub fn rounded(values: &[f32]) -> Vec<u16> {
-    const CHUNK: usize = 64 * 1024;
-    let mut out = vec![0u16; values.len()];
-    out.par_chunks_mut(CHUNK)
-        .zip(values.par_chunks(CHUNK))
-        .for_each(|(out, values)| round_into(values, out));
-    out
 }
 
 /// Rows a left-hand side of `m` rows must hold: the kernel reads whole 32-row blocks (rows past

@@ -22,7 +22,7 @@ use super::Precision;
 use super::amx::{self, Bf16Weights};
 use super::backbone::{Backbone, ConvNextBlock, GRN_EPS, LAYER_NORM_EPS};
 use super::host_ops::{
-    add_in_place, depthwise_pixels, gelu_with_squares, layer_norm_rows, matmul_bias,
+    BufferPool, add_in_place, depthwise_pixels, gelu_with_squares, layer_norm_rows, matmul_bias,
     scale_shift_rows, values,
 };
 
@@ -254,19 +254,21 @@ impl HostBackbone {
     }
 
     /// One normalised image `[3, height, width]` (planar) → features
-    /// `[height / 4, width / 4, channels]`.
+    /// `[height / 4, width / 4, channels]` (a buffer from `pool`, which also lends the
+    /// activations).
     pub(crate) fn forward(
         &self,
         image: &[f32],
         height: usize,
         width: usize,
         trace: bool,
+        pool: &mut BufferPool,
     ) -> HostFeatures {
         let (h, w) = (height / 4, width / 4);
-        let mut x = self.stem(image, height, width);
+        let mut x = self.stem(image, height, width, pool);
         let stem = trace.then(|| x.clone());
         for block in &self.blocks {
-            self.block(block, &mut x, h, w);
+            self.block(block, &mut x, h, w, pool);
         }
         let stage1 = trace.then(|| x.clone());
         x.par_chunks_mut(CHUNK_PIXELS * self.channels)
@@ -281,14 +283,14 @@ impl HostBackbone {
     }
 
     /// 4x4 patchify with stride 4, then LayerNorm: `[3, H, W]` → `[H/4 · W/4, channels]`.
-    fn stem(&self, image: &[f32], height: usize, width: usize) -> Vec<f32> {
+    fn stem(&self, image: &[f32], height: usize, width: usize, pool: &mut BufferPool) -> Vec<f32> {
         let (h, w, c) = (height / 4, width / 4, self.channels);
         let planes = self.stem.k / 16;
         assert!(
             image.len() == planes * height * width,
             "stem: image is not [{planes}, {height}, {width}]; this is a bug"
         );
-        let mut out = vec![0f32; h * w * c];
+        let mut out = pool.take::<f32>(h * w * c);
         out.par_chunks_mut(CHUNK_PIXELS * c)
             .enumerate()
             .for_each_init(
@@ -323,7 +325,7 @@ impl HostBackbone {
     }
 
     /// One ConvNeXt-V2 block in place on `x` (`[h · w, channels]`).
-    fn block(&self, block: &HostBlock, x: &mut [f32], h: usize, w: usize) {
+    fn block(&self, block: &HostBlock, x: &mut [f32], h: usize, w: usize, pool: &mut BufferPool) {
         let (pixels, c, hidden_c) = (h * w, self.channels, block.fc1.n);
         // Pass 1: depthwise + LayerNorm + fc1 + GELU per chunk, sums of squares per channel.
         let x_in: &[f32] = x;
@@ -376,7 +378,7 @@ impl HostBackbone {
         };
         let (hidden, partials): (Hidden, Vec<Vec<f32>>) = match self.precision {
             Precision::F32 => {
-                let mut hidden = vec![0f32; pixels * hidden_c];
+                let mut hidden = pool.take::<f32>(pixels * hidden_c);
                 let partials = hidden
                     .par_chunks_mut(CHUNK_PIXELS * hidden_c)
                     .enumerate()
@@ -387,8 +389,8 @@ impl HostBackbone {
                 (Hidden::F32(hidden), partials)
             }
             Precision::Bf16 => {
-                // Rows padded to whole tile blocks; the padding stays zero.
-                let mut hidden = vec![0u16; amx::padded_rows(pixels) * hidden_c];
+                // Rows padded to whole tile blocks (the kernel discards their products).
+                let mut hidden = pool.take::<u16>(amx::padded_rows(pixels) * hidden_c);
                 let partials = hidden
                     .par_chunks_mut(CHUNK_PIXELS * hidden_c)
                     .enumerate()
@@ -435,21 +437,26 @@ impl HostBackbone {
                     add_in_place(rows, &product[..n * c]);
                 },
             );
+        match hidden {
+            Hidden::F32(buffer) => pool.give(buffer),
+            Hidden::Bf16(buffer) => pool.give(buffer),
+        }
     }
 }
 
 /// Depthwise correlation of channels-last features `[h, w, c]` with one sample's kernels
-/// `[c, k, k]` (zero padding `k / 2`) → `[h, w, c]`.
+/// `[c, k, k]` (zero padding `k / 2`) → `[h, w, c]` (a buffer from `pool`).
 pub(crate) fn correlate(
     features: &[f32],
     h: usize,
     w: usize,
     kernels: &[f32],
     k: usize,
+    pool: &mut BufferPool,
 ) -> Vec<f32> {
     let c = kernels.len() / (k * k);
     let taps = channels_last_taps(kernels, c, k);
-    let mut out = vec![0f32; h * w * c];
+    let mut out = pool.take::<f32>(h * w * c);
     out.par_chunks_mut(CHUNK_PIXELS * c)
         .enumerate()
         .for_each(|(chunk, out)| {

@@ -9,14 +9,12 @@
 //! NCHW↔NHWC around every layer and builds the whole im2col matrix at once; on the two-core target
 //! machine this path is about twice as fast. Training keeps burn's modules (autodiff).
 
-use std::borrow::Cow;
-
 use burn::prelude::*;
 use rayon::prelude::*;
 
 use super::Precision;
 use super::amx::{self, Bf16Weights};
-use super::host_ops::{matmul_bias, relu_in_place, values};
+use super::host_ops::{BufferPool, Pooled, matmul_bias, values};
 use super::tdcm::{HEAD_SCALE_MAX, HEAD_SCALE_MIN, Heads, SearchMatcher};
 use burn::nn::BatchNorm;
 use burn::nn::conv::Conv2d;
@@ -36,9 +34,9 @@ struct Conv3x3 {
 }
 
 /// An element of im2col patches: f32 for the exact path, bf16 bits for the tiles.
-trait Patch: Copy + Default + Send + Sync {
-    /// A layer's input in this element type (f32: the input itself).
-    fn convert(input: &[f32]) -> Cow<'_, [Self]>;
+trait Patch: Pooled {
+    /// `values` in this element type, into `out` (same length).
+    fn convert_into(values: &[f32], out: &mut [Self]);
     /// Values per patch row (9 · cin, padded to the tiles' k steps for bf16).
     fn row_len(conv: &Conv3x3) -> usize;
     /// Patch rows a buffer for `pixels` pixels must hold.
@@ -48,8 +46,8 @@ trait Patch: Copy + Default + Send + Sync {
 }
 
 impl Patch for f32 {
-    fn convert(input: &[f32]) -> Cow<'_, [f32]> {
-        Cow::Borrowed(input)
+    fn convert_into(values: &[f32], out: &mut [f32]) {
+        out.copy_from_slice(values);
     }
 
     fn row_len(conv: &Conv3x3) -> usize {
@@ -66,8 +64,8 @@ impl Patch for f32 {
 }
 
 impl Patch for u16 {
-    fn convert(input: &[f32]) -> Cow<'_, [u16]> {
-        Cow::Owned(amx::rounded(input))
+    fn convert_into(values: &[f32], out: &mut [u16]) {
+        amx::round_into(values, out);
     }
 
     fn row_len(conv: &Conv3x3) -> usize {
@@ -81,6 +79,16 @@ impl Patch for u16 {
     fn multiply(conv: &Conv3x3, patches: &[u16], pixels: usize, out: &mut [f32]) {
         amx::multiply(patches, pixels, conv.bf16_weights(), out);
     }
+}
+
+/// `values` as a pooled buffer of `T`, converted in parallel chunks.
+fn converted<T: Patch>(values: &[f32], pool: &mut BufferPool) -> Vec<T> {
+    const CHUNK: usize = 64 * 1024;
+    let mut out = pool.take::<T>(values.len());
+    out.par_chunks_mut(CHUNK)
+        .zip(values.par_chunks(CHUNK))
+        .for_each(|(out, values)| T::convert_into(values, out));
+    out
 }
 
 impl Conv3x3 {
@@ -167,6 +175,13 @@ impl Conv3x3 {
             let (y, x) = (y0 + p / width, p % width);
             for ky in 0..3 {
                 let sy = y as isize + ky as isize - 1;
+                if sy >= 0 && sy < height as isize && x >= 1 && x + 1 < width {
+                    // The row's three taps are three adjacent pixels: one copy.
+                    let src = (sy as usize * width + x - 1) * cin;
+                    patch[ky * 3 * cin..(ky + 1) * 3 * cin]
+                        .copy_from_slice(&input[src..src + 3 * cin]);
+                    continue;
+                }
                 for kx in 0..3 {
                     let sx = x as isize + kx as isize - 1;
                     let dst = &mut patch[(ky * 3 + kx) * cin..(ky * 3 + kx + 1) * cin];
@@ -187,19 +202,17 @@ impl Conv3x3 {
         matmul_bias(patches, pixels, k, &self.matrix, n, &self.bias, out);
     }
 
-    /// The convolution over a whole channels-last image: `[h * w, cin]` → `[h * w, cout]`.
-    fn forward(&self, input: &[f32], height: usize, width: usize) -> Vec<f32> {
-        if self.bf16.is_some() {
-            self.forward_with::<u16>(input, height, width)
-        } else {
-            self.forward_with::<f32>(input, height, width)
-        }
-    }
-
-    fn forward_with<T: Patch>(&self, input: &[f32], height: usize, width: usize) -> Vec<f32> {
-        let input = T::convert(input);
+    /// The convolution over a whole channels-last image: `[h * w, cin]` → `[h * w, cout]`
+    /// (a pooled buffer).
+    fn forward<T: Patch>(
+        &self,
+        input: &[T],
+        height: usize,
+        width: usize,
+        pool: &mut BufferPool,
+    ) -> Vec<f32> {
         let rows = self.chunk_rows::<T>(width);
-        let mut out = vec![0f32; height * width * self.cout];
+        let mut out = pool.take::<f32>(height * width * self.cout);
         out.par_chunks_mut(rows * width * self.cout)
             .enumerate()
             .for_each_init(
@@ -207,7 +220,7 @@ impl Conv3x3 {
                 |patches, (chunk, out)| {
                     let y0 = chunk * rows;
                     let n = (height - y0).min(rows);
-                    self.im2col(&input, height, width, y0, n, patches);
+                    self.im2col(input, height, width, y0, n, patches);
                     T::multiply(self, patches, n * width, out);
                 },
             );
@@ -215,24 +228,32 @@ impl Conv3x3 {
     }
 }
 
-/// PixelShuffle(2) channels-last: `[h, w, 4c]` → `[2h, 2w, c]` (rows follow from the length),
-/// `out[2y + i, 2x + j, ch] = in[y, x, 4ch + 2i + j]`.
-fn pixel_shuffle(input: &[f32], width: usize, channels_in: usize) -> Vec<f32> {
+/// ReLU then PixelShuffle(2), channels-last, into the next layer's element type:
+/// `[h, w, 4c]` → `[2h, 2w, c]` (a pooled buffer; rows follow from the length),
+/// `out[2y + i, 2x + j, ch] = max(in[y, x, 4ch + 2i + j], 0)`.
+fn relu_shuffle<T: Patch>(
+    input: &[f32],
+    width: usize,
+    channels_in: usize,
+    pool: &mut BufferPool,
+) -> Vec<T> {
     let c = channels_in / 4;
-    let mut out = vec![0f32; input.len()];
-    out.par_chunks_mut(2 * width * c)
-        .enumerate()
-        .for_each(|(oy, row)| {
+    let mut out = pool.take::<T>(input.len());
+    out.par_chunks_mut(2 * width * c).enumerate().for_each_init(
+        || vec![0f32; 2 * width * c],
+        |row, (oy, out)| {
             let (y, i) = (oy / 2, oy % 2);
             for ox in 0..2 * width {
                 let (x, j) = (ox / 2, ox % 2);
-                let src = &input[(y * width + x) * channels_in..(y * width + x + 1) * channels_in];
+                let src = &input[(y * width + x) * channels_in..][..channels_in];
                 let dst = &mut row[ox * c..(ox + 1) * c];
                 for (ch, d) in dst.iter_mut().enumerate() {
-                    *d = src[4 * ch + 2 * i + j];
+                    *d = src[4 * ch + 2 * i + j].max(0.0);
                 }
             }
-        });
+            T::convert_into(row, out);
+        },
+    );
     out
 }
 
@@ -311,26 +332,19 @@ impl HeadsCpu {
         }
     }
 
-    /// `[h * w, 24]` → `[5, h * w]` planes (score, sign, cos, scale_x, scale_y).
-    fn forward(&self, input: &[f32], height: usize, width: usize, pose: PoseHeads) -> Vec<f32> {
-        if self.hidden.bf16.is_some() {
-            self.forward_with::<u16>(input, height, width, pose)
-        } else {
-            self.forward_with::<f32>(input, height, width, pose)
-        }
-    }
-
-    fn forward_with<T: Patch>(
+    /// `[h * w, 24]` → `[5, h * w]` planes (score, sign, cos, scale_x, scale_y) in `planes`.
+    fn forward<T: Patch>(
         &self,
-        input: &[f32],
+        input: &[T],
         height: usize,
         width: usize,
         pose: PoseHeads,
-    ) -> Vec<f32> {
-        let input = T::convert(input);
+        pool: &mut BufferPool,
+        planes: &mut [f32],
+    ) {
         let rows = self.hidden.chunk_rows::<T>(width);
         let k = T::row_len(&self.hidden);
-        let mut pixel_major = vec![0f32; height * width * 5];
+        let mut pixel_major = pool.take::<f32>(height * width * 5);
         pixel_major
             .par_chunks_mut(rows * width * 5)
             .enumerate()
@@ -346,7 +360,7 @@ impl HeadsCpu {
                 |(patches, features, gathered, selected), (chunk, out)| {
                     let y0 = chunk * rows;
                     let n = (height - y0).min(rows);
-                    self.hidden.im2col(&input, height, width, y0, n, patches);
+                    self.hidden.im2col(input, height, width, y0, n, patches);
                     let out = &mut out[..n * width * 5];
                     match pose {
                         PoseHeads::Everywhere => {
@@ -392,13 +406,15 @@ impl HeadsCpu {
                 },
             );
         let pixels = height * width;
-        let mut planes = vec![0f32; 5 * pixels];
-        for (p, o) in pixel_major.chunks_exact(5).enumerate() {
-            for head in 0..5 {
-                planes[head * pixels + p] = o[head];
-            }
-        }
         planes
+            .par_chunks_mut(pixels)
+            .enumerate()
+            .for_each(|(head, plane)| {
+                for (v, o) in plane.iter_mut().zip(pixel_major.chunks_exact(5)) {
+                    *v = o[head];
+                }
+            });
+        pool.give(pixel_major);
     }
 }
 
@@ -443,7 +459,9 @@ impl HostDecoder {
     }
 
     /// One sample's channels-last correlation `[h, w, 96]` → its five maps `[5, 4h, 4w]`
-    /// (planes), and the intermediates when `trace`.
+    /// (planes) in `maps`, and the intermediates when `trace`. Activations come from and go
+    /// back to `pool`.
+    #[allow(clippy::too_many_arguments)]
     pub fn forward(
         &self,
         correlation: &[f32],
@@ -451,23 +469,50 @@ impl HostDecoder {
         w: usize,
         trace: bool,
         pose: PoseHeads,
-    ) -> (Vec<f32>, Option<HostTrace>) {
-        let fused = self.fusion.forward(correlation, h, w); // [h, w, 96]
-        let mut x = self.conv1.forward(&fused, h, w); // [h, w, 192]
+        pool: &mut BufferPool,
+        maps: &mut [f32],
+    ) -> Option<HostTrace> {
+        if self.fusion.bf16.is_some() {
+            self.forward_with::<u16>(correlation, h, w, trace, pose, pool, maps)
+        } else {
+            self.forward_with::<f32>(correlation, h, w, trace, pose, pool, maps)
+        }
+    }
+
+    #[allow(clippy::too_many_arguments)]
+    fn forward_with<T: Patch>(
+        &self,
+        correlation: &[f32],
+        h: usize,
+        w: usize,
+        trace: bool,
+        pose: PoseHeads,
+        pool: &mut BufferPool,
+        maps: &mut [f32],
+    ) -> Option<HostTrace> {
+        let input = converted::<T>(correlation, pool);
+        let fused = self.fusion.forward(&input, h, w, pool); // [h, w, 96]
+        pool.give(input);
+        let input = converted::<T>(&fused, pool);
+        let x = self.conv1.forward(&input, h, w, pool); // [h, w, 192]
+        pool.give(input);
         let bn1 = trace.then(|| x.clone());
-        relu_in_place(&mut x);
-        let x = pixel_shuffle(&x, w, self.conv1.cout); // [2h, 2w, 48]
-        let mut x = self.conv2.forward(&x, 2 * h, 2 * w); // [2h, 2w, 96]
+        let input = relu_shuffle::<T>(&x, w, self.conv1.cout, pool); // [2h, 2w, 48]
+        pool.give(x);
+        let x = self.conv2.forward(&input, 2 * h, 2 * w, pool); // [2h, 2w, 96]
+        pool.give(input);
         let bn2 = trace.then(|| x.clone());
-        relu_in_place(&mut x);
-        let x = pixel_shuffle(&x, 2 * w, self.conv2.cout); // [4h, 4w, 24]
-        let maps = self.heads.forward(&x, 4 * h, 4 * w, pose);
+        let input = relu_shuffle::<T>(&x, 2 * w, self.conv2.cout, pool); // [4h, 4w, 24]
+        pool.give(x);
+        self.heads.forward(&input, 4 * h, 4 * w, pose, pool, maps);
+        pool.give(input);
         let trace = trace.then(|| HostTrace {
-            fusion: fused,
+            fusion: fused.clone(),
             bn1: bn1.expect("traced"),
             bn2: bn2.expect("traced"),
         });
-        (maps, trace)
+        pool.give(fused);
+        trace
     }
 }
 
@@ -489,7 +534,12 @@ mod tests {
         .into_data()
         .try_into_vec()
         .unwrap();
-        let planes = |pose| decoder.forward(&correlation, 9, 11, false, pose).0;
+        let mut pool = BufferPool::default();
+        let mut planes = |pose| {
+            let mut maps = vec![0f32; 5 * 36 * 44];
+            decoder.forward(&correlation, 9, 11, false, pose, &mut pool, &mut maps);
+            maps
+        };
         let full = planes(PoseHeads::Everywhere);
         let n = full.len() / 5;
         let mut scores = full[..n].to_vec();

@@ -5,12 +5,15 @@
 //! branch; anywhere else burn's modules, exactly as training runs them. Both paths compute the
 //! same function; the parity tests check each one explicitly against the official fixtures.
 
+use std::sync::{Mutex, PoisonError};
+
 use burn::prelude::*;
 
 use super::backbone::{BackboneTrace, GeluGrn};
 use super::device::is_host_cpu;
 use super::host_backbone::{HostBackbone, correlate};
 use super::host_decoder::{HostDecoder, PoseHeads};
+use super::host_ops::BufferPool;
 use super::tdcm::{MatchMaps, SearchTrace, Tdcm};
 use super::{Precision, PrecisionError};
 
@@ -26,13 +29,8 @@ struct HostSearch {
     backbone: HostBackbone,
     decoder: HostDecoder,
     precision: Precision,
-}
-
-/// One search sample through the host kernels: the maps `[5, 4h, 4w]` (planes), and the
-/// intermediates when traced.
-struct HostSample {
-    maps: Vec<f32>,
-    trace: Option<HostSampleTrace>,
+    /// Activation buffers kept between samples until [`InferenceNetwork::release_buffers`].
+    pool: Mutex<BufferPool>,
 }
 
 /// Channels-last intermediates of one sample, for the parity fixtures.
@@ -50,10 +48,12 @@ impl HostSearch {
             backbone: HostBackbone::new(&model.search_matcher.backbone),
             decoder: HostDecoder::new(&model.search_matcher),
             precision: Precision::F32,
+            pool: Mutex::default(),
         }
     }
 
-    /// `image`: planar `[3, height, width]`; `kernels`: `[channels, k, k]`.
+    /// One search sample: `image` planar `[3, height, width]`, `kernels` `[channels, k, k]`
+    /// → its maps `[5, 4h, 4w]` (planes) in `maps`, and the intermediates when `trace`.
     #[allow(clippy::too_many_arguments)]
     fn sample(
         &self,
@@ -64,19 +64,33 @@ impl HostSearch {
         k: usize,
         trace: bool,
         pose: PoseHeads,
-    ) -> HostSample {
-        let out = self.backbone.forward(image, height, width, trace);
+        maps: &mut [f32],
+    ) -> Option<HostSampleTrace> {
+        // Concurrent samples each take what the pool holds (possibly nothing), never wait.
+        let mut pool =
+            std::mem::take(&mut *self.pool.lock().unwrap_or_else(PoisonError::into_inner));
+        let out = self
+            .backbone
+            .forward(image, height, width, trace, &mut pool);
         let (h, w) = (out.height, out.width);
-        let correlation = correlate(&out.features, h, w, kernels, k);
-        let (maps, decoder) = self.decoder.forward(&correlation, h, w, trace, pose);
+        let correlation = correlate(&out.features, h, w, kernels, k, &mut pool);
+        let decoder = self
+            .decoder
+            .forward(&correlation, h, w, trace, pose, &mut pool, maps);
         let trace = decoder.map(|decoder| HostSampleTrace {
             stem: out.stem.expect("traced"),
             stage1: out.stage1.expect("traced"),
-            features: out.features,
-            correlation,
+            features: out.features.clone(),
+            correlation: correlation.clone(),
             decoder,
         });
-        HostSample { maps, trace }
+        pool.give(out.features);
+        pool.give(correlation);
+        self.pool
+            .lock()
+            .unwrap_or_else(PoisonError::into_inner)
+            .absorb(pool);
+        trace
     }
 }
 
@@ -131,6 +145,15 @@ impl InferenceNetwork {
         host.decoder.set_precision(precision);
         host.precision = precision;
         Ok(self)
+    }
+
+    /// Frees the activation buffers the host kernels keep between samples (they let the tiles
+    /// of one frame reuse memory instead of faulting in fresh pages). The matcher calls this
+    /// after each set of jobs, so an idle service holds no activations.
+    pub fn release_buffers(&self) {
+        if let Some(host) = &self.host {
+            *host.pool.lock().unwrap_or_else(PoisonError::into_inner) = BufferPool::default();
+        }
     }
 
     /// The arithmetic of the search branch's products.
@@ -198,9 +221,10 @@ impl InferenceNetwork {
         let (images, kernels) = (host_values(images), host_values(kernels));
         let image_len = planes * height * width;
         let kernel_len = channels * k * k;
-        let mut maps = Vec::new();
-        for i in 0..batch {
-            let sample = host.sample(
+        let (h, w) = (height / 4, width / 4);
+        let mut maps = vec![0f32; batch * 5 * 16 * h * w];
+        for (i, maps) in maps.chunks_exact_mut(5 * 16 * h * w).enumerate() {
+            host.sample(
                 &images[i * image_len..(i + 1) * image_len],
                 height,
                 width,
@@ -208,10 +232,9 @@ impl InferenceNetwork {
                 k,
                 false,
                 pose,
+                maps,
             );
-            maps.extend(sample.maps);
         }
-        let (h, w) = (height / 4, width / 4);
         MatchMaps {
             stacked: Tensor::from_data(TensorData::new(maps, [batch, 5, 4 * h, 4 * w]), &device),
         }
@@ -232,8 +255,12 @@ impl InferenceNetwork {
         let (images, kernels) = (host_values(images), host_values(kernels));
         let image_len = planes * height * width;
         let kernel_len = channels * k * k;
-        let samples: Vec<HostSample> = (0..batch)
-            .map(|i| {
+        let (h, w) = (height / 4, width / 4);
+        let mut maps = vec![0f32; batch * 5 * 16 * h * w];
+        let traces: Vec<HostSampleTrace> = maps
+            .chunks_exact_mut(5 * 16 * h * w)
+            .enumerate()
+            .map(|(i, maps)| {
                 host.sample(
                     &images[i * image_len..(i + 1) * image_len],
                     height,
@@ -242,20 +269,13 @@ impl InferenceNetwork {
                     k,
                     true,
                     PoseHeads::Everywhere,
+                    maps,
                 )
+                .expect("traced")
             })
             .collect();
-        let (h, w) = (height / 4, width / 4);
-        let maps: Vec<f32> = samples
-            .iter()
-            .flat_map(|s| s.maps.iter().copied())
-            .collect();
-        let traces: Vec<&HostSampleTrace> = samples
-            .iter()
-            .map(|s| s.trace.as_ref().expect("traced"))
-            .collect();
         let tensor = |part: fn(&HostSampleTrace) -> &[f32], h: usize, w: usize, c: usize| {
-            let parts: Vec<&[f32]> = traces.iter().map(|t| part(t)).collect();
+            let parts: Vec<&[f32]> = traces.iter().map(part).collect();
             nchw_tensor(&parts, h, w, c, &device)
         };
         let c = host.backbone.channels();
