@@ -199,6 +199,12 @@ fn main() {
             }
         }
     }
+    // Before the classical matcher (which needs far more): what the network cases needed, both
+    // models' weights and every case's frames included.
+    println!(
+        "peak memory of the network cases: {:.0} MiB",
+        peak_rss_mib()
+    );
     // The classical matcher on the first large frame, two threads.
     if let Some(case) = cases.iter().find(|c| c.name == "frame2048") {
         let (frame, truth) = parts_frame(&case.part, case.side, case.grid, case.grid, 0);

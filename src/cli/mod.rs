@@ -91,9 +91,10 @@ pub struct ModelArgs {
     /// trained) or `gray` (the authors' test.py demo).
     #[arg(long, default_value = "imagenet", value_parser = str::parse::<InputConvention>)]
     pub convention: InputConvention,
-    /// Arithmetic of the network's large products: `f32` (exact) or `bf16` (Intel AMX tiles,
-    /// several times faster; README "Speed" shows its held-out accuracy).
-    #[arg(long, default_value = "f32", value_parser = str::parse::<Precision>)]
+    /// Arithmetic of the network's large products: `auto` (bf16 where the CPU has Intel AMX
+    /// tiles, else f32), `f32` (exact, the same numbers on every machine) or `bf16` (AMX tiles,
+    /// about twice as fast; README "Speed" shows its held-out accuracy).
+    #[arg(long, default_value = "auto", value_parser = str::parse::<Precision>)]
     pub precision: Precision,
 }
 

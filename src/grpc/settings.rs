@@ -29,7 +29,8 @@ pub struct Settings {
     pub weights: String,
     /// Input convention of the weights: `imagenet` or `gray`.
     pub convention: crate::imaging::InputConvention,
-    /// Arithmetic of the network's large products: `f32` (exact) or `bf16` (AMX tiles).
+    /// Arithmetic of the network's large products: `auto` (bf16 where the CPU has AMX tiles,
+    /// else f32), `f32` (exact) or `bf16` (AMX tiles).
     pub precision: crate::model::Precision,
     /// Most search images in one forward pass; a batch forms only from requests already
     /// waiting, so a lone request never waits for one. 4 measured best on 2 cores (README).

@@ -120,7 +120,7 @@ impl HostBlock {
     /// fc2 with this image's GRN folded in, from the per-channel sums of squares of the GELU
     /// output: `N_c = G_c / (mean G + eps)`, `G_c = sqrt(squares_c)`; GRN is
     /// `z·(1 + w_c·N_c) + b_c`.
-    fn fc2_with_grn(&self, squares: &[f64], precision: Precision) -> Dense {
+    fn fc2_with_grn(&self, squares: &[f64], bf16: bool) -> Dense {
         let norms: Vec<f64> = squares.iter().map(|s| s.sqrt()).collect();
         let mean = norms.iter().sum::<f64>() / norms.len() as f64;
         let (k, n) = (self.fc2.k, self.fc2.n);
@@ -135,7 +135,9 @@ impl HostBlock {
             row.iter_mut().for_each(|w| *w *= scale);
         }
         let mut dense = Dense::new(matrix, k, n, bias);
-        dense.set_precision(precision);
+        if bf16 {
+            dense.set_precision(Precision::Bf16);
+        }
         dense
     }
 }
@@ -199,7 +201,8 @@ pub(crate) struct HostBackbone {
     /// The closing BatchNorm (inference statistics) as a scale and shift.
     out_scale: Vec<f32>,
     out_shift: Vec<f32>,
-    precision: Precision,
+    /// Whether fc1 and fc2 run on the AMX tiles.
+    bf16: bool,
 }
 
 impl HostBackbone {
@@ -237,13 +240,14 @@ impl HostBackbone {
             blocks: backbone.blocks.iter().map(HostBlock::new).collect(),
             out_scale,
             out_shift,
-            precision: Precision::F32,
+            bf16: false,
         }
     }
 
-    /// Runs fc1 and fc2 in `precision` from now on (the caller checked that the machine can).
+    /// Runs fc1 and fc2 in `precision` (resolved: f32 or bf16) from now on (the caller
+    /// checked that the machine can).
     pub(crate) fn set_precision(&mut self, precision: Precision) {
-        self.precision = precision;
+        self.bf16 = precision == Precision::Bf16;
         for block in &mut self.blocks {
             block.fc1.set_precision(precision);
         }
@@ -371,13 +375,14 @@ impl HostBackbone {
                 Some(weights) => vec![0u16; CHUNK_PIXELS * weights.lhs_stride()],
                 None => Vec::new(),
             },
-            activation: match self.precision {
-                Precision::Bf16 => vec![0f32; CHUNK_PIXELS * hidden_c],
-                Precision::F32 => Vec::new(),
+            activation: if self.bf16 {
+                vec![0f32; CHUNK_PIXELS * hidden_c]
+            } else {
+                Vec::new()
             },
         };
-        let (hidden, partials): (Hidden, Vec<Vec<f32>>) = match self.precision {
-            Precision::F32 => {
+        let (hidden, partials): (Hidden, Vec<Vec<f32>>) = match self.bf16 {
+            false => {
                 let mut hidden = pool.take::<f32>(pixels * hidden_c);
                 let partials = hidden
                     .par_chunks_mut(CHUNK_PIXELS * hidden_c)
@@ -388,7 +393,7 @@ impl HostBackbone {
                     .collect();
                 (Hidden::F32(hidden), partials)
             }
-            Precision::Bf16 => {
+            true => {
                 // Rows padded to whole tile blocks (the kernel discards their products).
                 let mut hidden = pool.take::<u16>(amx::padded_rows(pixels) * hidden_c);
                 let partials = hidden
@@ -414,7 +419,7 @@ impl HostBackbone {
             }
         }
         // Pass 2: fc2 with GRN folded in, added to the residual.
-        let fc2 = block.fc2_with_grn(&squares, self.precision);
+        let fc2 = block.fc2_with_grn(&squares, self.bf16);
         x.par_chunks_mut(CHUNK_PIXELS * c)
             .enumerate()
             .for_each_init(

@@ -134,11 +134,12 @@ impl InferenceNetwork {
     /// convolutions) in `precision` (see [`Precision`]); the template branch stays f32 (its
     /// cost is negligible). Refused where the machine or the device cannot run it.
     pub fn with_precision(mut self, precision: Precision) -> Result<Self, PrecisionError> {
+        let precision = precision.resolve(self.host.is_some());
         precision.check_machine()?;
         let Some(host) = &mut self.host else {
             return match precision {
-                Precision::F32 => Ok(self),
                 Precision::Bf16 => Err(PrecisionError::NotHostCpu),
+                Precision::F32 | Precision::Auto => Ok(self),
             };
         };
         host.backbone.set_precision(precision);

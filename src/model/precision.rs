@@ -5,20 +5,27 @@
 //! head convolutions) to bfloat16 and runs them on AMX tiles, accumulating in f32: several times
 //! faster where the CPU has AMX, slightly different numbers (README "Speed" shows the held-out
 //! accuracy of both). Everything else (depthwise convolutions, normalisations, activations,
-//! correlation, decoding, refinement) stays f32 in both.
+//! correlation, decoding, refinement) stays f32 in both. `auto` — what the CLI and the service
+//! use unless told otherwise — is bf16 where the machine has AMX tiles and the network runs on
+//! the host CPU kernels, f32 elsewhere: on held-out pairs the two agree within noise (README
+//! "Speed"), and bf16 halves a large frame's time. `f32` pins the exact function everywhere.
 
 use std::fmt;
 use std::str::FromStr;
 
 use super::amx;
 
-/// Written `f32` or `bf16` in flags and settings; this is the one parser of those words.
+/// Written `f32`, `bf16` or `auto` in flags and settings; this is the one parser of those
+/// words. The library's networks run f32 unless given another precision.
 #[derive(Debug, Clone, Copy, PartialEq, Eq, Default, serde::Deserialize, serde::Serialize)]
 #[serde(try_from = "String", into = "String")]
 pub enum Precision {
     #[default]
     F32,
     Bf16,
+    /// [`Precision::Bf16`] where it can run, [`Precision::F32`] elsewhere
+    /// ([`Precision::resolve`]).
+    Auto,
 }
 
 impl FromStr for Precision {
@@ -28,8 +35,9 @@ impl FromStr for Precision {
         match s.trim().to_ascii_lowercase().as_str() {
             "f32" => Ok(Self::F32),
             "bf16" => Ok(Self::Bf16),
+            "auto" => Ok(Self::Auto),
             other => Err(format!(
-                "unknown precision `{other}`: use \"f32\" (exact) or \"bf16\" (AMX tiles)"
+                "unknown precision `{other}`: use \"f32\" (exact), \"bf16\" (AMX tiles) or \"auto\" (bf16 where the CPU has AMX tiles, else f32)"
             )),
         }
     }
@@ -40,6 +48,7 @@ impl fmt::Display for Precision {
         f.write_str(match self {
             Self::F32 => "f32",
             Self::Bf16 => "bf16",
+            Self::Auto => "auto",
         })
     }
 }
@@ -76,9 +85,22 @@ impl Precision {
     /// built).
     pub fn check_machine(self) -> Result<(), PrecisionError> {
         match self {
-            Self::F32 => Ok(()),
+            Self::F32 | Self::Auto => Ok(()),
             Self::Bf16 if amx::available() => Ok(()),
             Self::Bf16 => Err(PrecisionError::NoTiles),
+        }
+    }
+}
+
+impl Precision {
+    /// The precision a network runs: `auto` becomes bf16 where this machine has AMX tiles and
+    /// the network runs on the host CPU kernels (`host_kernels`), f32 elsewhere; the others
+    /// stay as they are.
+    pub fn resolve(self, host_kernels: bool) -> Precision {
+        match self {
+            Self::Auto if host_kernels && amx::available() => Self::Bf16,
+            Self::Auto => Self::F32,
+            other => other,
         }
     }
 }
@@ -89,12 +111,26 @@ mod tests {
 
     #[test]
     fn words_parse_and_print_back() {
-        for precision in [Precision::F32, Precision::Bf16] {
+        for precision in [Precision::F32, Precision::Bf16, Precision::Auto] {
             assert_eq!(precision.to_string().parse::<Precision>(), Ok(precision));
         }
         assert_eq!(" BF16 ".parse::<Precision>(), Ok(Precision::Bf16));
         let error = "fp16".parse::<Precision>().unwrap_err();
         assert!(error.contains("fp16") && error.contains("bf16"), "{error}");
+    }
+
+    #[test]
+    fn auto_is_bf16_exactly_where_tiles_and_host_kernels_are() {
+        let expected = if amx::available() {
+            Precision::Bf16
+        } else {
+            Precision::F32
+        };
+        assert_eq!(Precision::Auto.resolve(true), expected);
+        assert_eq!(Precision::Auto.resolve(false), Precision::F32);
+        assert_eq!(Precision::Auto.check_machine(), Ok(()));
+        assert_eq!(Precision::F32.resolve(true), Precision::F32);
+        assert_eq!(Precision::Bf16.resolve(false), Precision::Bf16);
     }
 
     #[test]
