@@ -14,8 +14,8 @@
 //! `POSEMATCH_BENCH_FRAMES` sets frames per case (default 2), `POSEMATCH_BENCH_THREADS` the
 //! thread counts (default `1,2`), `POSEMATCH_BENCH_GRID_SCALES` the objects' sizes on the
 //! network grid to compare (default `1`; see `plan::scale_passes`), `POSEMATCH_BENCH_PRECISION`
-//! the arithmetic of the network's products (default `f32`; `f32,bf16` compares both where the
-//! CPU has AMX tiles).
+//! the arithmetic of the network's products (default `auto`, as the CLI; `f32,bf16` compares
+//! both where the CPU has AMX tiles; the table names the one that ran).
 
 use std::path::PathBuf;
 use std::time::Instant;
@@ -114,7 +114,7 @@ fn main() {
         .collect();
     let grid_scales = list("POSEMATCH_BENCH_GRID_SCALES", "1");
     let precisions: Vec<Precision> = std::env::var("POSEMATCH_BENCH_PRECISION")
-        .unwrap_or_else(|_| "f32".into())
+        .unwrap_or_else(|_| "auto".into())
         .split(',')
         .map(|p| {
             p.parse()
@@ -148,6 +148,7 @@ fn main() {
         let mut matcher = Matcher::new(model.clone(), device.clone(), InputConvention::ImagenetRgb)
             .with_precision(precision)
             .unwrap_or_else(|e| panic!("{e}"));
+        let precision = matcher.network().precision();
         for (case, &grid_scale) in cases
             .iter()
             .flat_map(|c| grid_scales.iter().map(move |g| (c, g)))
