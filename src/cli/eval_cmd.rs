@@ -60,6 +60,10 @@ pub struct EvalArgs {
     /// misses come from.
     #[arg(long)]
     pub by_photo: bool,
+    /// Objects' size on the network grid relative to the scale plan's (1, what `match` and the
+    /// service run): a measurement knob for choosing the plan, 0.25..=2 (README "Speed").
+    #[arg(long, default_value_t = crate::matcher::plan::DEFAULT_GRID_SCALE)]
+    pub grid_scale: f32,
     /// Print JSON instead of the table.
     #[arg(long)]
     pub json: bool,
@@ -95,11 +99,21 @@ pub fn run(args: EvalArgs) -> Result<(), CliError> {
             crate::synth::DEFAULT_MIN_STRUCTURE
         )));
     }
+    if !(0.25..=2.0).contains(&args.grid_scale) {
+        return Err(CliError::Usage(format!(
+            "--grid-scale {} is out of range 0.25..=2 (1 = the scale plan's size)",
+            args.grid_scale
+        )));
+    }
     let search_side = if args.multi_instance { 320 } else { 224 };
     let photos =
         PhotoSet::load(&args.images, search_side).map_err(|e| CliError::Input(e.to_string()))?;
     let matcher = match args.method {
-        Method::Tdcm => Some(load_model(&args.model)?),
+        Method::Tdcm => {
+            let mut matcher = load_model(&args.model)?;
+            matcher.set_grid_scale(args.grid_scale);
+            Some(matcher)
+        }
         Method::Ncc => None,
     };
     let (tw, th) = args.template_size;
