@@ -8,7 +8,7 @@ mod common;
 
 use burn::prelude::*;
 use common::{read_f32, reference_dir, tensor, worst};
-use posematch::model::{InferenceNetwork, MatchMaps, available_backends, load_weights};
+use posematch::model::{InferenceNetwork, MatchMaps, Precision, available_backends, load_weights};
 use safetensors::SafeTensors;
 
 /// Compares, returns a failure description or None.
@@ -105,4 +105,71 @@ fn network_reproduces_every_fixture_tensor_on_every_backend() {
         "parity failures:\n{}",
         failures.join("\n")
     );
+}
+
+/// bf16 (AMX tiles) computes the same function up to bf16 rounding: on the fixture's pairs its
+/// heads stay within a few hundredths of the authors' outputs and the score peaks where theirs
+/// does. Runs where the CPU has AMX tiles; elsewhere bf16 is refused (tested in the library)
+/// and there is nothing to compare.
+#[test]
+fn bf16_heads_stay_close_to_the_fixture_where_tiles_exist() {
+    let Some(dir) = reference_dir() else { return };
+    if Precision::Bf16.check_machine().is_err() {
+        println!("no AMX tiles on this CPU: bf16 cannot run here");
+        return;
+    }
+    let bytes = std::fs::read(dir.join("tdcm-parity.safetensors")).unwrap();
+    let st = SafeTensors::deserialize(&bytes).unwrap();
+    let device = Device::flex();
+    let model = load_weights(&dir.join("tdcm-official.pth"), &device).unwrap();
+    let network = InferenceNetwork::host(model)
+        .with_precision(Precision::Bf16)
+        .unwrap();
+    assert_eq!(network.precision(), Precision::Bf16);
+    for pair in ["a", "b1", "b2"] {
+        let n = |s: &str| format!("{pair}.{s}");
+        let kernels = network.encode_templates(tensor(&st, &n("template"), &device));
+        let maps = network.forward(tensor(&st, &n("search"), &device), kernels);
+        let (score, _) = read_f32(&st, &n("score"));
+        let peak = score.iter().fold(0f32, |m, v| m.max(*v));
+        for (i, name) in MatchMaps::CHANNELS.iter().enumerate() {
+            let (expected, _) = read_f32(&st, &n(name));
+            let actual: Vec<f32> = maps.channel(i).into_data().try_to_vec().unwrap();
+            // The decode reads the pose heads only near peaks: compare them where the score is
+            // at least half its peak, the score everywhere. The sign head is read as a side
+            // (sign = value >= 0.5): it must fall on the same side unless the authors' value is
+            // itself within 0.1 of the boundary.
+            let (mut worst_diff, mut at) = (0f32, 0);
+            for (p, (e, a)) in expected.iter().zip(&actual).enumerate() {
+                let read = i == 0 || score[p] >= 0.5 * peak;
+                if *name == "sign" && read && (e - 0.5).abs() >= 0.1 {
+                    assert_eq!(
+                        *e >= 0.5,
+                        *a >= 0.5,
+                        "{pair}: sign flipped at {p} ({e} vs {a})"
+                    );
+                }
+                if read && ((e - a).abs() > worst_diff || a.is_nan()) {
+                    (worst_diff, at) = ((e - a).abs(), p);
+                }
+            }
+            println!("{pair}.{name:8} bf16 max|diff| {worst_diff:.3e} at {at}");
+            let tolerance = match *name {
+                "score" => 0.03,
+                "sign" => 0.1,
+                _ => 0.03,
+            };
+            assert!(
+                worst_diff <= tolerance,
+                "{pair}.{name}: bf16 differs by {worst_diff} at {at} (tolerance {tolerance})"
+            );
+        }
+        let argmax = |v: &[f32]| (0..v.len()).max_by(|&a, &b| v[a].total_cmp(&v[b])).unwrap();
+        let bf16_score: Vec<f32> = maps.channel(0).into_data().try_to_vec().unwrap();
+        assert_eq!(
+            argmax(&score),
+            argmax(&bf16_score),
+            "{pair}: score peak moved"
+        );
+    }
 }

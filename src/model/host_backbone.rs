@@ -381,36 +381,33 @@ impl HostBackbone {
                 Vec::new()
             },
         };
-        let (hidden, partials): (Hidden, Vec<Vec<f32>>) = match self.bf16 {
-            false => {
-                let mut hidden = pool.take::<f32>(pixels * hidden_c);
-                let partials = hidden
-                    .par_chunks_mut(CHUNK_PIXELS * hidden_c)
-                    .enumerate()
-                    .map_init(scratch, |scratch, (chunk, out)| {
-                        expand(chunk * CHUNK_PIXELS, scratch, out)
-                    })
-                    .collect();
-                (Hidden::F32(hidden), partials)
-            }
-            true => {
-                // Rows padded to whole tile blocks (the kernel discards their products).
-                let mut hidden = pool.take::<u16>(amx::padded_rows(pixels) * hidden_c);
-                let partials = hidden
-                    .par_chunks_mut(CHUNK_PIXELS * hidden_c)
-                    .enumerate()
-                    .map_init(scratch, |scratch, (chunk, out)| {
-                        let first = chunk * CHUNK_PIXELS;
-                        let n = (pixels - first).min(CHUNK_PIXELS);
-                        let mut activation = std::mem::take(&mut scratch.activation);
-                        let squares = expand(first, scratch, &mut activation[..n * hidden_c]);
-                        amx::round_into(&activation[..n * hidden_c], &mut out[..n * hidden_c]);
-                        scratch.activation = activation;
-                        squares
-                    })
-                    .collect();
-                (Hidden::Bf16(hidden), partials)
-            }
+        let (hidden, partials): (Hidden, Vec<Vec<f32>>) = if !self.bf16 {
+            let mut hidden = pool.take::<f32>(pixels * hidden_c);
+            let partials = hidden
+                .par_chunks_mut(CHUNK_PIXELS * hidden_c)
+                .enumerate()
+                .map_init(scratch, |scratch, (chunk, out)| {
+                    expand(chunk * CHUNK_PIXELS, scratch, out)
+                })
+                .collect();
+            (Hidden::F32(hidden), partials)
+        } else {
+            // Rows padded to whole tile blocks (the kernel discards their products).
+            let mut hidden = pool.take::<u16>(amx::padded_rows(pixels) * hidden_c);
+            let partials = hidden
+                .par_chunks_mut(CHUNK_PIXELS * hidden_c)
+                .enumerate()
+                .map_init(scratch, |scratch, (chunk, out)| {
+                    let first = chunk * CHUNK_PIXELS;
+                    let n = (pixels - first).min(CHUNK_PIXELS);
+                    let mut activation = std::mem::take(&mut scratch.activation);
+                    let squares = expand(first, scratch, &mut activation[..n * hidden_c]);
+                    amx::round_into(&activation[..n * hidden_c], &mut out[..n * hidden_c]);
+                    scratch.activation = activation;
+                    squares
+                })
+                .collect();
+            (Hidden::Bf16(hidden), partials)
         };
         let mut squares = vec![0f64; hidden_c];
         for partial in &partials {
