@@ -139,7 +139,7 @@ fn main() {
         .filter(|c| classical_only || filter.as_ref().is_none_or(|f| c.name.contains(f.as_str())))
         .collect();
     println!(
-        "| weights | arithmetic | case | grid scale | threads | ms/frame (median) | network / screen / refine ms | recall | precision |"
+        "| weights | arithmetic | case | grid scale | threads | ms/frame (median) | prepare / network / peaks / screen / refine ms | recall | precision |"
     );
     println!("| --- | --- | --- | --- | --- | --- | --- | --- | --- |");
     let runs = models
@@ -183,16 +183,16 @@ fn main() {
                         .unwrap();
                     ms.push(start.elapsed().as_secs_f64() * 1e3);
                     let t = &outcome.timings;
-                    stages.push((t.network_ms, t.screen_ms, t.refine_ms));
+                    stages.push((t.prepare_ms, t.network_ms, t.peaks_ms, t.screen_ms, t.refine_ms));
                     let (h, d, t) = count(&outcome.poses, truth, &case.part);
                     totals = (totals.0 + h, totals.1 + d, totals.2 + t);
                 }
                 let mut order: Vec<usize> = (0..ms.len()).collect();
                 order.sort_by(|a, b| ms[*a].total_cmp(&ms[*b]));
                 let median = order[ms.len() / 2];
-                let (network, screen, refine) = stages[median];
+                let (prepare, network, peaks, screen, refine) = stages[median];
                 println!(
-                    "| {name} | {precision} | {} | {grid_scale} | {threads} | {:.1} | {network:.0} / {screen:.0} / {refine:.0} | {:.3} | {:.3} |",
+                    "| {name} | {precision} | {} | {grid_scale} | {threads} | {:.1} | {prepare:.0} / {network:.0} / {peaks:.0} / {screen:.0} / {refine:.0} | {:.3} | {:.3} |",
                     case.name,
                     ms[median],
                     totals.0 as f64 / totals.2.max(1) as f64,

@@ -37,7 +37,14 @@ pub trait BatchModel: Send + 'static {
         jobs: &[MatchJob],
         still_wanted: &dyn Fn(usize) -> bool,
     ) -> Vec<Option<Result<MatchOutcome, MatchError>>>;
+    /// No work has come for [`IDLE_RELEASE`]: a model may free what it keeps between batches.
+    fn idle(&self) {}
 }
+
+/// How long the model thread waits without work before the model frees the activation buffers
+/// it keeps between batches (so a line sending frames back to back reuses them, and an idle
+/// replica holds no activations).
+pub const IDLE_RELEASE: std::time::Duration = std::time::Duration::from_secs(1);
 
 impl BatchModel for Matcher {
     fn encode_template(&self, image: &RgbImage32) -> Result<EncodedTemplate, MatchError> {
@@ -50,6 +57,10 @@ impl BatchModel for Matcher {
         still_wanted: &dyn Fn(usize) -> bool,
     ) -> Vec<Option<Result<MatchOutcome, MatchError>>> {
         Matcher::match_many_wanted(self, jobs, still_wanted)
+    }
+
+    fn idle(&self) {
+        self.network().release_buffers();
     }
 }
 
@@ -258,7 +269,24 @@ fn model_loop(
     metrics: Metrics,
 ) {
     let mut batch: Vec<(MatchWork, Instant)> = Vec::with_capacity(max_batch_size);
-    while let Some(first) = receiver.blocking_recv() {
+    // Waits for the next work, telling the model when it has been idle for IDLE_RELEASE.
+    let waiter = tokio::runtime::Builder::new_current_thread()
+        .enable_time()
+        .build()
+        .expect("a timer for the model thread");
+    let next_work = |receiver: &mut mpsc::UnboundedReceiver<Work>| {
+        // The timer is created inside `block_on`, where the runtime's clock runs.
+        let waited =
+            waiter.block_on(async { tokio::time::timeout(IDLE_RELEASE, receiver.recv()).await });
+        match waited {
+            Ok(work) => work,
+            Err(_) => {
+                model.idle();
+                receiver.blocking_recv()
+            }
+        }
+    };
+    while let Some(first) = next_work(&mut receiver) {
         let mut next = Some(first);
         // Take what is already waiting, without waiting for more: a lone request never pays
         // for batching.
@@ -376,6 +404,8 @@ mod tests {
     struct GatedModel {
         started: Sender<usize>,
         release: Mutex<Receiver<()>>,
+        /// Times the model thread reported it idle.
+        idles: Arc<AtomicUsize>,
     }
 
     /// An image this wide makes the fake model panic (a bug in the model).
@@ -418,6 +448,10 @@ mod tests {
                 })
                 .collect()
         }
+
+        fn idle(&self) {
+            self.idles.fetch_add(1, Ordering::SeqCst);
+        }
     }
 
     fn template(width: u32) -> EncodedTemplate {
@@ -440,6 +474,7 @@ mod tests {
         started: Receiver<usize>,
         release: Sender<()>,
         template: Arc<EncodedTemplate>,
+        idles: Arc<AtomicUsize>,
     }
 
     type Answer = oneshot::Receiver<Result<BatchAnswer, BatchError>>;
@@ -449,9 +484,11 @@ mod tests {
             let (started_tx, started) = channel();
             let (release, release_rx) = channel();
             let metrics = Metrics::new();
+            let idles = Arc::new(AtomicUsize::new(0));
             let model = GatedModel {
                 started: started_tx,
                 release: Mutex::new(release_rx),
+                idles: idles.clone(),
             };
             let batcher = Batcher::spawn(model, max_batch_size, queue_size, metrics.clone());
             Self {
@@ -460,6 +497,7 @@ mod tests {
                 started,
                 release,
                 template: Arc::new(template(8)),
+                idles,
             }
         }
 
@@ -498,6 +536,32 @@ mod tests {
             .blocking_recv()
             .expect("the model thread answered")
             .expect("a successful answer")
+    }
+
+    #[test]
+    fn the_model_hears_of_idleness_only_after_a_quiet_second() {
+        let h = Harness::new(2, 10);
+        let first = h.submit(100, None).unwrap();
+        assert_eq!(h.next_batch(), 1);
+        h.release_batch();
+        assert_eq!(answer(first).outcome.poses[0].x, 100.0);
+        assert_eq!(
+            h.idles.load(Ordering::SeqCst),
+            0,
+            "not idle while answering"
+        );
+        std::thread::sleep(IDLE_RELEASE + Duration::from_millis(500));
+        assert_eq!(
+            h.idles.load(Ordering::SeqCst),
+            1,
+            "idle once after a quiet second"
+        );
+        // Work after idleness is served as before, and one idle period is reported once.
+        let second = h.submit(101, None).unwrap();
+        assert_eq!(h.next_batch(), 1);
+        h.release_batch();
+        assert_eq!(answer(second).outcome.poses[0].x, 101.0);
+        assert_eq!(h.idles.load(Ordering::SeqCst), 1);
     }
 
     #[test]

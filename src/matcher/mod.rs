@@ -294,7 +294,6 @@ impl Matcher {
                 peaks_ms += ms_since(t);
             }
         }
-        self.network.release_buffers();
         let count = results.iter().filter(|r| r.is_ok()).count().max(1) as f64;
         for proposal in results.iter_mut().flatten() {
             proposal
