@@ -183,7 +183,13 @@ fn main() {
                         .unwrap();
                     ms.push(start.elapsed().as_secs_f64() * 1e3);
                     let t = &outcome.timings;
-                    stages.push((t.prepare_ms, t.network_ms, t.peaks_ms, t.screen_ms, t.refine_ms));
+                    stages.push((
+                        t.prepare_ms,
+                        t.network_ms,
+                        t.peaks_ms,
+                        t.screen_ms,
+                        t.refine_ms,
+                    ));
                     let (h, d, t) = count(&outcome.poses, truth, &case.part);
                     totals = (totals.0 + h, totals.1 + d, totals.2 + t);
                 }

@@ -545,23 +545,21 @@ mod tests {
         assert_eq!(h.next_batch(), 1);
         h.release_batch();
         assert_eq!(answer(first).outcome.poses[0].x, 100.0);
-        assert_eq!(
-            h.idles.load(Ordering::SeqCst),
-            0,
-            "not idle while answering"
+        // (The thread may have reported idle once before the first work, on a slow machine.)
+        let before = h.idles.load(Ordering::SeqCst);
+        assert!(
+            before <= 1,
+            "{before} idle reports before any quiet second after work"
         );
         std::thread::sleep(IDLE_RELEASE + Duration::from_millis(500));
-        assert_eq!(
-            h.idles.load(Ordering::SeqCst),
-            1,
-            "idle once after a quiet second"
-        );
+        let after = h.idles.load(Ordering::SeqCst);
+        assert_eq!(after, before + 1, "idle once after a quiet second");
         // Work after idleness is served as before, and one idle period is reported once.
         let second = h.submit(101, None).unwrap();
         assert_eq!(h.next_batch(), 1);
         h.release_batch();
         assert_eq!(answer(second).outcome.poses[0].x, 101.0);
-        assert_eq!(h.idles.load(Ordering::SeqCst), 1);
+        assert_eq!(h.idles.load(Ordering::SeqCst), after);
     }
 
     #[test]
