@@ -133,7 +133,9 @@ pub struct Proposal {
 }
 
 /// The network and how to feed it. Not thread-safe by design: one owner (a CLI, the service's
-/// model thread) drives it.
+/// model thread) drives it. On the host CPU the network keeps its activation buffers from one
+/// search to the next (a large frame's tiles and successive frames reuse them); an owner that
+/// goes idle frees them with `matcher.network().release_buffers()`, as the service does.
 pub struct Matcher {
     network: InferenceNetwork,
     device: Device,
