@@ -370,6 +370,56 @@ mod tests {
         assert_is_truth(&kept.poses[0], &truth);
     }
 
+    /// The network reads an angle as `±acos(cos)` with the sign from its sign map; on the
+    /// elongated parts of `cargo bench --bench frames` the sign is what it gets wrong, with the
+    /// peak a few pixels off the part. The screen looks at the mirrored angle too.
+    #[test]
+    fn a_candidate_with_the_angles_sign_wrong_is_verified_at_the_right_angle() {
+        let part = crate::synth::procedural_part(28, 52);
+        let (frame, truth) = crate::synth::parts_frame(&part, 600, 4, 4, 5);
+        // Where a flipped sign lands 30–90° from the truth: outside the window around the
+        // network's angle, and a turn at which the part does not look like itself.
+        let truth: Vec<Pose> = truth
+            .into_iter()
+            .filter(|t| (30.0..=90.0).contains(&angle_distance_deg(t.angle_deg, -t.angle_deg)))
+            .collect();
+        assert!(truth.len() >= 4, "{truth:?}");
+        let (template, image) = (GrayImage32::from_rgb(&part), GrayImage32::from_rgb(&frame));
+        let options = MatchOptions {
+            max_instances: truth.len(),
+            ..MatchOptions::default()
+        };
+        let mut recovered = 0;
+        for (k, t) in truth.iter().enumerate() {
+            // 3 px off in a direction that turns with k, sign flipped, scales as the network
+            // reads this part (about 1.2 x 1.0).
+            let direction = k as f32 * 1.3;
+            let candidate = pose(
+                t.x + 3.0 * direction.cos(),
+                t.y + 3.0 * direction.sin(),
+                -t.angle_deg,
+                1.0,
+                0.5,
+            );
+            let candidate = Pose {
+                scale_x: 1.2,
+                ..candidate
+            };
+            let verified =
+                verify_candidates(&template, (28.0, 52.0), &image, vec![candidate], &options);
+            let found = verified.poses.first().filter(|p| {
+                (p.x - t.x).hypot(p.y - t.y) < 0.5
+                    && angle_distance_deg(p.angle_deg, t.angle_deg) < 1.0
+            });
+            if found.is_some() {
+                recovered += 1;
+            } else {
+                eprintln!("truth {t:?}: {:?}", verified.poses);
+            }
+        }
+        assert_eq!(recovered, truth.len());
+    }
+
     #[test]
     fn without_refinement_the_heatmap_value_is_the_score() {
         let options = MatchOptions {

@@ -165,6 +165,10 @@ struct AngleScaleGrid {
     /// `Some(n)`: score every angle at the start's scales first and try the scale factors
     /// only at the `n` best angles (the screen's shortcut); `None`: every angle x scales.
     angles_first: Option<usize>,
+    /// Search near the start's mirrored angle (`-angle`) too, as a second start: the network
+    /// reads an angle as `±acos(cos)` with the sign from its sign map, and the sign is the
+    /// head it gets wrong most (README "Verified candidates").
+    mirrored_start: bool,
 }
 
 /// The `keep` angles of `angles` at which the template at `start`'s scales scores best.
@@ -202,13 +206,14 @@ impl AngleScaleGrid {
             far_step_deg: 6.0,
             far_factors: (0..3).map(|k| 0.85f32 * 1.18f32.powi(k)).collect(),
             angles_first: None,
+            mirrored_start: false,
         }
     }
 
     /// Searches angle x scales around `start` (its centre fixed) for the best score under
-    /// `points`, trying only angles that `allowed` accepts: ±30° first, the rest of the circle
-    /// when nothing there reaches [`FULL_CIRCLE_BELOW`] (a weakly trained network, a
-    /// symmetric-looking part).
+    /// `points`, trying only angles that `allowed` accepts: ±30° first (and ±30° around the
+    /// mirrored angle with `mirrored_start`), the rest of the circle when nothing there reaches
+    /// [`FULL_CIRCLE_BELOW`] (a weakly trained network, a symmetric-looking part).
     fn search(
         &self,
         points: &TemplatePoints,
@@ -216,7 +221,23 @@ impl AngleScaleGrid {
         start: &Pose,
         allowed: &dyn Fn(f32) -> bool,
     ) -> Scored {
-        let mut best = Scored {
+        self.search_windows(points, image, start, allowed)
+            .into_iter()
+            .max_by(|a, b| a.score.total_cmp(&b.score))
+            .expect("the start itself is always scored")
+    }
+
+    /// [`AngleScaleGrid::search`]'s best pose in each window it searched (the start's, the
+    /// mirrored start's, the rest of the circle), the start's first: starts for an alignment,
+    /// which can pull a centre a few pixels off onto the object only from the right angle.
+    fn search_windows(
+        &self,
+        points: &TemplatePoints,
+        image: &GrayImage32,
+        start: &Pose,
+        allowed: &dyn Fn(f32) -> bool,
+    ) -> Vec<Scored> {
+        let at_start = Scored {
             pose: *start,
             score: if allowed(wrap_angle_deg(start.angle_deg)) {
                 points.score(image, start)
@@ -224,53 +245,75 @@ impl AngleScaleGrid {
                 f32::NEG_INFINITY
             },
         };
-        let try_offsets =
-            |offsets: &mut dyn Iterator<Item = f32>, factors: &[f32], best: &mut Scored| {
-                let angles: Vec<f32> = offsets
-                    .map(|offset| start.angle_deg + offset)
-                    .filter(|&angle| allowed(wrap_angle_deg(angle)))
-                    .collect();
-                let angles = match self.angles_first {
-                    Some(keep) => best_angles(points, image, start, angles, keep),
-                    None => angles,
-                };
-                for angle_deg in angles {
-                    for &factor_x in factors {
-                        for &factor_y in factors {
-                            let pose = Pose {
-                                angle_deg,
-                                scale_x: start.scale_x * factor_x,
-                                scale_y: start.scale_y * factor_y,
-                                ..*start
-                            };
-                            let score = points.score(image, &pose);
-                            if score > best.score {
-                                *best = Scored { pose, score };
-                            }
+        let best_of = |offsets: &mut dyn Iterator<Item = f32>, factors: &[f32]| -> Scored {
+            let mut best = Scored {
+                pose: *start,
+                score: f32::NEG_INFINITY,
+            };
+            let angles: Vec<f32> = offsets
+                .map(|offset| start.angle_deg + offset)
+                .filter(|&angle| allowed(wrap_angle_deg(angle)))
+                .collect();
+            let angles = match self.angles_first {
+                Some(keep) => best_angles(points, image, start, angles, keep),
+                None => angles,
+            };
+            for angle_deg in angles {
+                for &factor_x in factors {
+                    for &factor_y in factors {
+                        let pose = Pose {
+                            angle_deg,
+                            scale_x: start.scale_x * factor_x,
+                            scale_y: start.scale_y * factor_y,
+                            ..*start
+                        };
+                        let score = points.score(image, &pose);
+                        if score > best.score {
+                            best = Scored { pose, score };
                         }
                     }
                 }
-            };
+            }
+            best
+        };
         let near = (30.0 / self.near_step_deg).floor() as i32;
-        try_offsets(
+        let own = best_of(
             &mut (-near..=near).map(|k| k as f32 * self.near_step_deg),
             &self.near_factors,
-            &mut best,
         );
-        if best.score < FULL_CIRCLE_BELOW {
+        let mut windows = vec![if own.score > at_start.score {
+            own
+        } else {
+            at_start
+        }];
+        if self.mirrored_start {
+            // The mirrored start's window, as offsets from the start, without what the first
+            // window covers already.
+            let mirrored = best_of(
+                &mut (-near..=near)
+                    .map(|k| -2.0 * start.angle_deg + k as f32 * self.near_step_deg)
+                    .filter(|&offset| wrap_angle_deg(offset).abs() > 30.0),
+                &self.near_factors,
+            );
+            windows.push(mirrored);
+        }
+        if windows.iter().all(|w| w.score < FULL_CIRCLE_BELOW) {
             let first = (near as f32 * self.near_step_deg / self.far_step_deg).floor() as i32 + 1;
             let last = (360.0 / self.far_step_deg).ceil() as i32 - first;
-            try_offsets(
+            windows.push(best_of(
                 &mut (first..=last).map(|k| k as f32 * self.far_step_deg),
                 &self.far_factors,
-                &mut best,
-            );
+            ));
         }
-        if best.score == f32::NEG_INFINITY {
+        windows.retain(|w| w.score > f32::NEG_INFINITY);
+        if windows.is_empty() {
             // Nothing allowed (cannot happen for a non-empty angle range and the whole circle).
-            best.score = points.score(image, start);
+            windows.push(Scored {
+                pose: *start,
+                score: points.score(image, start),
+            });
         }
-        best
+        windows
     }
 }
 

@@ -175,6 +175,7 @@ impl<'a> Verifier<'a> {
             far_step_deg: (1.5 / radius).to_degrees().clamp(3.0, 10.0),
             far_factors: (0..3).map(|k| 0.85f32 * 1.18f32.powi(k)).collect(),
             angles_first: Some(SCREEN_ANGLES_KEPT),
+            mirrored_start: true,
         };
         Self {
             template,
@@ -233,14 +234,22 @@ impl<'a> Verifier<'a> {
             y: (candidate.y + 0.5) / f - 0.5,
             ..*candidate
         };
-        let mut best = self.level_grid.search(
+        let windows = self.level_grid.search_windows(
             &self.level_points,
             &self.level_image,
             &on_level,
             &*self.allowed,
         );
+        let mut best = *windows
+            .iter()
+            .max_by(|a, b| a.score.total_cmp(&b.score))
+            .expect("search_windows returns at least one pose");
         let (short, long) = self.level_template_sides;
-        let reach = long * best.pose.scale_x.max(best.pose.scale_y) * 0.75 + 4.0;
+        let largest_scale = windows
+            .iter()
+            .map(|w| w.pose.scale_x.max(w.pose.scale_y))
+            .fold(0.0f32, f32::max);
+        let reach = long * largest_scale * 0.75 + 4.0;
         let window = align::GradientWindow::new(
             &self.level_image,
             on_level.x,
@@ -248,18 +257,22 @@ impl<'a> Verifier<'a> {
             reach + 3.0 * LEVEL_SIGMA,
             LEVEL_SIGMA,
         );
-        let aligned = align::align(&self.level_align, &window, &best.pose, LEVEL_ITERATIONS);
-        let moved = (aligned.x - on_level.x).hypot(aligned.y - on_level.y);
-        let score = self.level_points.score(&self.level_image, &aligned);
-        if score > best.score
-            && self.plausible(&aligned)
-            && moved <= short * on_level.scale_x.min(on_level.scale_y) / 3.0
-            && (self.allowed)(wrap_angle_deg(aligned.angle_deg))
-        {
-            best = Scored {
-                pose: aligned,
-                score,
-            };
+        // Aligned from each window's best: the grid scores angles at the candidate's centre,
+        // and with that centre a few pixels off a wrong angle can outscore the right one.
+        for start in &windows {
+            let aligned = align::align(&self.level_align, &window, &start.pose, LEVEL_ITERATIONS);
+            let moved = (aligned.x - on_level.x).hypot(aligned.y - on_level.y);
+            let score = self.level_points.score(&self.level_image, &aligned);
+            if score > best.score
+                && self.plausible(&aligned)
+                && moved <= short * on_level.scale_x.min(on_level.scale_y) / 3.0
+                && (self.allowed)(wrap_angle_deg(aligned.angle_deg))
+            {
+                best = Scored {
+                    pose: aligned,
+                    score,
+                };
+            }
         }
         Screened {
             pose: Pose {
