@@ -15,7 +15,8 @@
 //! thread counts (default `1,2`), `POSEMATCH_BENCH_GRID_SCALES` the objects' sizes on the
 //! network grid to compare (default `1`; see `plan::scale_passes`), `POSEMATCH_BENCH_PRECISION`
 //! the arithmetic of the network's products (default `auto`, as the CLI; `f32,bf16` compares
-//! both where the CPU has AMX tiles; the table names the one that ran);
+//! both where the CPU has a bf16 kernel, AMX tiles or AVX-512 BF16; the table names the one
+//! that ran);
 //! `POSEMATCH_BENCH_CLASSICAL=0` skips the classical matcher (24 s, 14 GB).
 
 use std::path::PathBuf;
@@ -149,7 +150,7 @@ fn main() {
         let mut matcher = Matcher::new(model.clone(), device.clone(), InputConvention::ImagenetRgb)
             .with_precision(precision)
             .unwrap_or_else(|e| panic!("{e}"));
-        let precision = matcher.network().precision();
+        let precision = matcher.network().precision().arithmetic();
         for (case, &grid_scale) in cases
             .iter()
             .flat_map(|c| grid_scales.iter().map(move |g| (c, g)))

@@ -21,7 +21,10 @@ use posematch::imaging::GrayImage32;
 use posematch::imaging::{InputConvention, RgbImage32};
 use posematch::matcher::peaks::{MapPlanes, find_peaks, peak_at};
 use posematch::matcher::{MatchOptions, Matcher};
-use posematch::model::{Precision, Tdcm, TdcmConfig, load_weights, multiply_adds, select_device};
+use posematch::model::{
+    Precision, Tdcm, TdcmConfig, bf16_kernel, load_weights, multiply_adds, product_gflops,
+    select_device,
+};
 use posematch::refine::refine_pose;
 
 fn model(device: &Device) -> (Tdcm, &'static str) {
@@ -72,6 +75,18 @@ fn benches(c: &mut Criterion) {
         2.0 * macs as f64 / 1e9,
         matmul_gflops(&device)
     );
+    // The host kernels' products on one thread, at the shapes of a backbone block's fc1 and
+    // fc2 and of the decoder's conv1 (a 256-pixel chunk), in f32 and with the bf16 kernel.
+    for (m, k, n) in [(256, 96, 384), (256, 384, 96), (256, 864, 192)] {
+        let (f32_rate, bf16_rate) = product_gflops(m, k, n);
+        println!(
+            "product [{m}x{k}]x[{k}x{n}], one thread: f32 {f32_rate:.0} GFLOP/s, bf16 {}",
+            match (bf16_rate, bf16_kernel()) {
+                (Some(rate), Some(kernel)) => format!("{rate:.0} GFLOP/s ({kernel})"),
+                _ => "not available on this CPU".into(),
+            }
+        );
+    }
     let matcher = Matcher::new(model, device.clone(), InputConvention::ImagenetRgb);
     let template = frame(36, 36);
     let encoded = matcher.encode_template(&template).unwrap();
@@ -122,7 +137,7 @@ fn benches(c: &mut Criterion) {
         );
         let least = 0.5 * posematch::matcher::MatchOptions::default().candidate_threshold;
         group.throughput(Throughput::Elements(1));
-        // The same search with the products in bf16 on AMX tiles, where this CPU has them.
+        // The same search with the products in bf16, where this CPU has a bf16 kernel.
         let bf16 = match Precision::Bf16.check_machine() {
             Ok(()) => Some(
                 Matcher::new(

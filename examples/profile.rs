@@ -1,7 +1,7 @@
 //! Where the time of one 224x224 search forward goes, stage by stage (burn's generic ops; the
 //! fused CPU paths replace some of them in the real forward).
 //! `cargo run --release --example profile [batch] [--whole] [--size N] [--bf16]` (search image
-//! N x N, default 224; `--bf16`: the network's products on AMX tiles).
+//! N x N, default 224; `--bf16`: the network's products in bf16).
 
 use std::time::Instant;
 

@@ -92,8 +92,8 @@ pub struct ModelArgs {
     #[arg(long, default_value = "imagenet", value_parser = str::parse::<InputConvention>)]
     pub convention: InputConvention,
     /// Arithmetic of the network's large products: `auto` (bf16 where the CPU has Intel AMX
-    /// tiles, else f32), `f32` (exact, the same numbers on every machine) or `bf16` (AMX tiles,
-    /// about twice as fast; README "Speed" shows its held-out accuracy).
+    /// tiles or AVX-512 BF16, else f32), `f32` (exact, the same numbers on every machine) or
+    /// `bf16` (about twice as fast; README "Speed" shows its held-out accuracy).
     #[arg(long, default_value = "auto", value_parser = str::parse::<Precision>)]
     pub precision: Precision,
 }

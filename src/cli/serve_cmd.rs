@@ -26,7 +26,8 @@ pub struct ServeArgs {
     /// Weights file (.bpk, .pth, .safetensors); default: the weights embedded in the binary.
     #[arg(long)]
     weights: Option<PathBuf>,
-    /// Arithmetic of the network's large products: f32 (default, exact) or bf16 (Intel AMX).
+    /// Arithmetic of the network's large products: auto (default: bf16 where the CPU has AMX
+    /// tiles or AVX-512 BF16, else f32), f32 (exact) or bf16.
     #[arg(long)]
     precision: Option<String>,
     /// Where registered templates are kept: a directory, or postgres://USER@HOST/DATABASE for

@@ -193,7 +193,8 @@ impl RunningServer {
                         Arc::new(Engine::start(&config, store, templates, matcher, metrics));
                     let _ = engine.set(built.clone());
                     // Logged once requests can be answered (tests wait for this line).
-                    tracing::info!(%precision, "model loaded");
+                    let arithmetic = precision.arithmetic();
+                    tracing::info!(%precision, %arithmetic, "model loaded");
                     report_health(built, health, move || {
                         let _ = ready_tx.send(Some(Ok(())));
                     })

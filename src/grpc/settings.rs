@@ -29,8 +29,8 @@ pub struct Settings {
     pub weights: String,
     /// Input convention of the weights: `imagenet` or `gray`.
     pub convention: crate::imaging::InputConvention,
-    /// Arithmetic of the network's large products: `auto` (bf16 where the CPU has AMX tiles,
-    /// else f32), `f32` (exact) or `bf16` (AMX tiles).
+    /// Arithmetic of the network's large products: `auto` (bf16 where the CPU has AMX tiles or
+    /// AVX-512 BF16, else f32), `f32` (exact) or `bf16`.
     pub precision: crate::model::Precision,
     /// Most search images in one forward pass; a batch forms only from requests already
     /// waiting, so a lone request never waits for one. 4 measured best on 2 cores (README).
@@ -369,7 +369,8 @@ mod tests {
             precision.contains("precision") && precision.contains("bf16"),
             "{precision}"
         );
-        // bf16 starts exactly where the CPU has AMX tiles; elsewhere the start fails saying so.
+        // bf16 starts exactly where the CPU has a bf16 kernel; elsewhere the start fails saying
+        // so.
         let bf16 = Settings::load(
             None,
             env(&[("POSEMATCH__PRECISION", "bf16")]),
@@ -377,7 +378,7 @@ mod tests {
         );
         match crate::model::Precision::Bf16.check_machine() {
             Ok(()) => assert_eq!(bf16.unwrap().precision, crate::model::Precision::Bf16),
-            Err(_) => assert!(bf16.unwrap_err().to_string().contains("AMX")),
+            Err(_) => assert!(bf16.unwrap_err().to_string().contains("AVX-512 BF16")),
         }
         assert!(err(&[("POSEMATCH__LISTEN", "nowhere")]).contains("listen"));
         assert!(err(&[("POSEMATCH__QUEUE_SIZE", "many")]).contains("queue_size"));

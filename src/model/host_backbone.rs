@@ -9,7 +9,7 @@
 //!
 //! 1. depthwise 7x7 + LayerNorm + fc1 + GELU per chunk, keeping each channel's sum of squares
 //!    (the only whole-image quantity, GRN's norms), the 384-channel activation stored once
-//!    (in bf16 when the products run on AMX tiles);
+//!    (in bf16 when the network runs in bf16);
 //! 2. GRN folded into fc2 — `fc2(z·s + b) = z·(diag(s)·W) + (b·W + bias)`, with the per-channel
 //!    `s` of this image — and the residual added in place.
 //!
@@ -19,8 +19,8 @@ use burn::nn::conv::Conv2d;
 use rayon::prelude::*;
 
 use super::Precision;
-use super::amx::{self, Bf16Weights};
 use super::backbone::{Backbone, ConvNextBlock, GRN_EPS, LAYER_NORM_EPS};
+use super::bf16::{self, Bf16Weights};
 use super::host_ops::{
     BufferPool, add_in_place, depthwise_pixels, gelu_with_squares, layer_norm_rows, matmul_bias,
     scale_shift_rows, values,
@@ -32,7 +32,7 @@ const CHUNK_PIXELS: usize = 256;
 /// Side of the depthwise convolution in each block.
 const BLOCK_KERNEL: usize = 7;
 
-/// A dense layer `[k] → [n]` as a row-major matrix, with its AMX copy at bf16.
+/// A dense layer `[k] → [n]` as a row-major matrix, with its packed bf16 copy.
 struct Dense {
     k: usize,
     n: usize,
@@ -201,7 +201,7 @@ pub(crate) struct HostBackbone {
     /// The closing BatchNorm (inference statistics) as a scale and shift.
     out_scale: Vec<f32>,
     out_shift: Vec<f32>,
-    /// Whether fc1 and fc2 run on the AMX tiles.
+    /// Whether fc1 and fc2 run in bf16.
     bf16: bool,
 }
 
@@ -360,9 +360,9 @@ impl HostBackbone {
                         .chunks_exact_mut(stride)
                         .zip(normed.chunks_exact(c))
                     {
-                        amx::round_into(values, &mut row[..c]);
+                        bf16::round_into(values, &mut row[..c]);
                     }
-                    amx::multiply(&scratch.lhs, n, weights, out);
+                    bf16::multiply(&scratch.lhs, n, weights, out);
                 }
             }
             let mut squares = vec![0f32; hidden_c];
@@ -393,7 +393,7 @@ impl HostBackbone {
             (Hidden::F32(hidden), partials)
         } else {
             // Rows padded to whole tile blocks (the kernel discards their products).
-            let mut hidden = pool.take::<u16>(amx::padded_rows(pixels) * hidden_c);
+            let mut hidden = pool.take::<u16>(bf16::padded_rows(pixels) * hidden_c);
             let partials = hidden
                 .par_chunks_mut(CHUNK_PIXELS * hidden_c)
                 .enumerate()
@@ -402,7 +402,7 @@ impl HostBackbone {
                     let n = (pixels - first).min(CHUNK_PIXELS);
                     let mut activation = std::mem::take(&mut scratch.activation);
                     let squares = expand(first, scratch, &mut activation[..n * hidden_c]);
-                    amx::round_into(&activation[..n * hidden_c], &mut out[..n * hidden_c]);
+                    bf16::round_into(&activation[..n * hidden_c], &mut out[..n * hidden_c]);
                     scratch.activation = activation;
                     squares
                 })
@@ -430,7 +430,7 @@ impl HostBackbone {
                             matmul_bias(lhs, n, hidden_c, &fc2.matrix, c, &fc2.bias, product);
                         }
                         (Hidden::Bf16(hidden), Some(weights)) => {
-                            amx::multiply(&hidden[first * hidden_c..], n, weights, product);
+                            bf16::multiply(&hidden[first * hidden_c..], n, weights, product);
                         }
                         (Hidden::Bf16(_), None) => {
                             unreachable!("bf16 activations come with bf16 weights")

@@ -13,7 +13,7 @@ use burn::prelude::*;
 use rayon::prelude::*;
 
 use super::Precision;
-use super::amx::{self, Bf16Weights};
+use super::bf16::{self, Bf16Weights};
 use super::host_ops::{BufferPool, Pooled, matmul_bias, values};
 use super::tdcm::{HEAD_SCALE_MAX, HEAD_SCALE_MIN, Heads, SearchMatcher};
 use burn::nn::BatchNorm;
@@ -29,7 +29,7 @@ struct Conv3x3 {
     /// `[9 * cin, cout]`, row `(ky * 3 + kx) * cin + ci`.
     matrix: Vec<f32>,
     bias: Vec<f32>,
-    /// The same weights for the AMX tiles, when the network runs in bf16.
+    /// The same weights packed for the bf16 kernels, when the network runs in bf16.
     bf16: Option<Bf16Weights>,
 }
 
@@ -65,7 +65,7 @@ impl Patch for f32 {
 
 impl Patch for u16 {
     fn convert_into(values: &[f32], out: &mut [u16]) {
-        amx::round_into(values, out);
+        bf16::round_into(values, out);
     }
 
     fn row_len(conv: &Conv3x3) -> usize {
@@ -73,11 +73,11 @@ impl Patch for u16 {
     }
 
     fn rows_for(pixels: usize) -> usize {
-        amx::padded_rows(pixels)
+        bf16::padded_rows(pixels)
     }
 
     fn multiply(conv: &Conv3x3, patches: &[u16], pixels: usize, out: &mut [f32]) {
-        amx::multiply(patches, pixels, conv.bf16_weights(), out);
+        bf16::multiply(patches, pixels, conv.bf16_weights(), out);
     }
 }
 
@@ -138,7 +138,7 @@ impl Conv3x3 {
         }
     }
 
-    /// Lays the weights out for the AMX tiles (bf16) or drops that copy (f32).
+    /// Lays the weights out for the bf16 kernels or drops that copy (f32).
     fn set_precision(&mut self, precision: Precision) {
         self.bf16 = (precision == Precision::Bf16)
             .then(|| Bf16Weights::new(&self.matrix, 9 * self.cin, self.cout, &self.bias));

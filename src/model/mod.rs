@@ -2,8 +2,9 @@
 //! (see `../shared/reference/README.md`), split into a template encoder and a search matcher,
 //! plus weight loading and backend selection. No images, no poses: tensors in, tensors out.
 
-mod amx;
 mod backbone;
+mod bf16;
+pub use bf16::{Bf16Kernel, kernel as bf16_kernel, product_gflops};
 mod cost;
 mod device;
 mod fused;

@@ -2,18 +2,19 @@
 //!
 //! `f32` is the exact function of the checkpoint (the parity fixtures hold it to 1e-4).
 //! `bf16` rounds both operands of every large product (backbone pointwise layers, decoder and
-//! head convolutions) to bfloat16 and runs them on AMX tiles, accumulating in f32: several times
-//! faster where the CPU has AMX, slightly different numbers (README "Speed" shows the held-out
-//! accuracy of both). Everything else (depthwise convolutions, normalisations, activations,
-//! correlation, decoding, refinement) stays f32 in both. `auto` — what the CLI and the service
-//! use unless told otherwise — is bf16 where the machine has AMX tiles and the network runs on
-//! the host CPU kernels, f32 elsewhere: on held-out pairs the two agree within noise (README
-//! "Speed"), and bf16 halves a large frame's time. `f32` pins the exact function everywhere.
+//! head convolutions) to bfloat16 and runs them on AMX tiles or with AVX-512 BF16 dot products
+//! (see `bf16.rs`), accumulating in f32: several times faster, slightly different numbers (README
+//! "Speed" shows the held-out accuracy of both). Everything else (depthwise convolutions,
+//! normalisations, activations, correlation, decoding, refinement) stays f32 in both. `auto` —
+//! what the CLI and the service use unless told otherwise — is bf16 where the CPU has either and
+//! the network runs on the host CPU kernels, f32 elsewhere: on held-out pairs the two agree
+//! within noise (README "Speed"), and bf16 halves a large frame's time. `f32` pins the exact
+//! function everywhere.
 
 use std::fmt;
 use std::str::FromStr;
 
-use super::amx;
+use super::bf16;
 
 /// Written `f32`, `bf16` or `auto` in flags and settings; this is the one parser of those
 /// words. The library's networks run f32 unless given another precision.
@@ -37,7 +38,7 @@ impl FromStr for Precision {
             "bf16" => Ok(Self::Bf16),
             "auto" => Ok(Self::Auto),
             other => Err(format!(
-                "unknown precision `{other}`: use \"f32\" (exact), \"bf16\" (AMX tiles) or \"auto\" (bf16 where the CPU has AMX tiles, else f32)"
+                "unknown precision `{other}`: use \"f32\" (exact), \"bf16\" (AMX tiles or AVX-512 BF16) or \"auto\" (bf16 where the CPU has either, else f32)"
             )),
         }
     }
@@ -71,9 +72,9 @@ impl TryFrom<String> for Precision {
 #[derive(Debug, Clone, PartialEq, Eq, thiserror::Error)]
 pub enum PrecisionError {
     #[error(
-        "precision bf16 needs Intel AMX tiles (Xeon Sapphire Rapids or newer, Linux 5.16 or newer), which this machine does not offer: use precision f32"
+        "precision bf16 needs AVX-512 BF16 (AMD Zen 4, Intel Cooper Lake or newer) or Intel AMX tiles (Sapphire Rapids or newer, Linux 5.16 or newer), which this machine does not offer: use precision f32"
     )]
-    NoTiles,
+    NoBf16Instructions,
     #[error(
         "precision bf16 runs on the host CPU kernels only (BURN_DEVICE flex or ndarray): use precision f32 on this device"
     )]
@@ -86,21 +87,30 @@ impl Precision {
     pub fn check_machine(self) -> Result<(), PrecisionError> {
         match self {
             Self::F32 | Self::Auto => Ok(()),
-            Self::Bf16 if amx::available() => Ok(()),
-            Self::Bf16 => Err(PrecisionError::NoTiles),
+            Self::Bf16 if bf16::available() => Ok(()),
+            Self::Bf16 => Err(PrecisionError::NoBf16Instructions),
         }
     }
 }
 
 impl Precision {
-    /// The precision a network runs: `auto` becomes bf16 where this machine has AMX tiles and
+    /// The precision a network runs: `auto` becomes bf16 where this machine has a bf16 kernel and
     /// the network runs on the host CPU kernels (`host_kernels`), f32 elsewhere; the others
     /// stay as they are.
     pub fn resolve(self, host_kernels: bool) -> Precision {
         match self {
-            Self::Auto if host_kernels && amx::available() => Self::Bf16,
+            Self::Auto if host_kernels && bf16::available() => Self::Bf16,
             Self::Auto => Self::F32,
             other => other,
+        }
+    }
+
+    /// What runs the products at this precision on this machine, for logs and benchmarks:
+    /// `f32`, `bf16 (AMX tiles)`, `bf16 (AVX-512 BF16)` (`auto` as it is, unresolved).
+    pub fn arithmetic(self) -> String {
+        match (self, bf16::kernel()) {
+            (Self::Bf16, Some(kernel)) => format!("bf16 ({kernel})"),
+            (other, _) => other.to_string(),
         }
     }
 }
@@ -120,8 +130,8 @@ mod tests {
     }
 
     #[test]
-    fn auto_is_bf16_exactly_where_tiles_and_host_kernels_are() {
-        let expected = if amx::available() {
+    fn auto_is_bf16_exactly_where_a_bf16_kernel_and_host_kernels_are() {
+        let expected = if bf16::available() {
             Precision::Bf16
         } else {
             Precision::F32
@@ -134,15 +144,15 @@ mod tests {
     }
 
     #[test]
-    fn bf16_is_refused_exactly_where_there_are_no_tiles() {
+    fn bf16_is_refused_exactly_where_there_is_no_bf16_kernel() {
         assert_eq!(Precision::F32.check_machine(), Ok(()));
         let bf16 = Precision::Bf16.check_machine();
-        if amx::available() {
+        if bf16::available() {
             assert_eq!(bf16, Ok(()));
         } else {
             let message = bf16.unwrap_err().to_string();
             assert!(
-                message.contains("AMX") && message.contains("f32"),
+                message.contains("AVX-512 BF16") && message.contains("f32"),
                 "{message}"
             );
         }

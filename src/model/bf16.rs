@@ -1,16 +1,21 @@
-//! Matrix products in bfloat16 on Intel AMX tiles, accumulating in f32.
+//! Matrix products in bfloat16, accumulating in f32: on Intel AMX tiles where the CPU has
+//! them, else with AVX-512 BF16 dot products.
 //!
-//! Why: on a CPU with AMX (Sapphire Rapids and later) one `tdpbf16ps` instruction does
-//! 16x16x32 multiply-adds, so the network's gemms (the backbone's pointwise layers, the
-//! decoder's 3x3 convolutions as im2col) cost a fraction of their f32 time and the network
-//! becomes bound by its memory-bound stages instead. The price is bf16 rounding of both operands
-//! (8 significant bits); products and sums stay f32. Used only when the caller chose
-//! [`super::Precision::Bf16`]; f32 remains the exact path (parity).
+//! Why: the network's gemms (the backbone's pointwise layers, the decoder's 3x3 convolutions as
+//! im2col) are most of its f32 time. One AMX `tdpbf16ps` does 16x16x32 multiply-adds; one
+//! AVX-512 BF16 `vdpbf16ps` does twice the multiply-adds of an f32 FMA (AMD Zen 4 and later,
+//! Intel Cooper Lake and Sapphire Rapids and later; measured on a Zen 4 core: 225 GFLOP/s
+//! against 108 for the f32 gemm, [`product_gflops`]). Either way the network becomes
+//! bound by its memory-bound stages instead. The price is bf16 rounding of both operands (8
+//! significant bits); products and sums stay f32. Used only when the caller chose
+//! [`super::Precision::Bf16`]; f32 remains the exact path (parity). Both kernels read the same
+//! packed weights and compute the same function up to the order of the f32 sums.
 //!
 //! The tile instructions are written as inline assembly: Rust's AMX intrinsics are unstable.
 
 #[cfg(target_arch = "x86_64")]
 use std::arch::asm;
+use std::fmt;
 use std::sync::OnceLock;
 
 /// Rows and columns (f32) of one accumulator tile.
@@ -21,9 +26,60 @@ const TILE_K: usize = 32;
 /// Rows of the left-hand side per kernel pass (two accumulator tiles high).
 const BLOCK_ROWS: usize = 2 * TILE_ROWS;
 
+/// The instructions that run this process's bf16 products.
+#[derive(Debug, Clone, Copy, PartialEq, Eq)]
+pub enum Bf16Kernel {
+    /// Intel AMX tiles (`tdpbf16ps`).
+    AmxTiles,
+    /// AVX-512 BF16 dot products (`vdpbf16ps`).
+    Avx512Dot,
+}
+
+impl fmt::Display for Bf16Kernel {
+    fn fmt(&self, f: &mut fmt::Formatter<'_>) -> fmt::Result {
+        f.write_str(match self {
+            Self::AmxTiles => "AMX tiles",
+            Self::Avx512Dot => "AVX-512 BF16",
+        })
+    }
+}
+
+/// The fastest bf16 kernel this process may use, `None` where the CPU has neither. Asked once
+/// per process.
+pub fn kernel() -> Option<Bf16Kernel> {
+    static KERNEL: OnceLock<Option<Bf16Kernel>> = OnceLock::new();
+    *KERNEL.get_or_init(|| {
+        if tiles_available() {
+            Some(Bf16Kernel::AmxTiles)
+        } else if dot_available() {
+            Some(Bf16Kernel::Avx512Dot)
+        } else {
+            None
+        }
+    })
+}
+
+/// Whether bf16 products can run here at all.
+pub fn available() -> bool {
+    kernel().is_some()
+}
+
+/// Whether the CPU has AVX-512F and AVX-512 BF16.
+fn dot_available() -> bool {
+    #[cfg(target_arch = "x86_64")]
+    {
+        std::arch::is_x86_feature_detected!("avx512f")
+            && std::arch::is_x86_feature_detected!("avx512bf16")
+    }
+    #[cfg(not(target_arch = "x86_64"))]
+    {
+        false
+    }
+}
+
 /// Whether this process may use AMX bf16 tiles: the CPU has them (CPUID) and the kernel granted
 /// the tile data state (`arch_prctl(ARCH_REQ_XCOMP_PERM)`, Linux 5.16+). Asked once per process.
-pub fn available() -> bool {
+fn tiles_available() -> bool {
     static AVAILABLE: OnceLock<bool> = OnceLock::new();
     *AVAILABLE.get_or_init(request_tiles)
 }
@@ -192,23 +248,24 @@ impl TileConfig {
     }
 }
 
-/// `out[i, j] = bias[j] + sum_k lhs[i, k] * weights[k, j]` for `i < m`, on this thread.
+/// `out[i, j] = bias[j] + sum_k lhs[i, k] * weights[k, j]` for `i < m`, on this thread, with
+/// this process's [`kernel`].
 ///
 /// `lhs`: `[padded_rows(m), weights.lhs_stride()]` bf16, row-major, zeros past `k` in each row.
 /// `out`: `[m, weights.n()]`, row-major.
 pub fn multiply(lhs: &[u16], m: usize, weights: &Bf16Weights, out: &mut [f32]) {
     assert!(
-        available(),
-        "AMX tiles are not available; this is a bug (callers check first)"
-    );
-    assert!(
         lhs.len() >= padded_rows(m) * weights.lhs_stride() && out.len() >= m * weights.n,
         "lhs or out too short; this is a bug"
     );
-    #[cfg(target_arch = "x86_64")]
-    // SAFETY: the tiles are available and permitted (asserted), and the sizes were checked.
-    unsafe {
-        multiply_tiles(lhs, m, weights, out);
+    match kernel() {
+        #[cfg(target_arch = "x86_64")]
+        // SAFETY: the tiles are available and permitted, and the sizes were checked.
+        Some(Bf16Kernel::AmxTiles) => unsafe { multiply_tiles(lhs, m, weights, out) },
+        #[cfg(target_arch = "x86_64")]
+        // SAFETY: the CPU has AVX-512F and AVX-512 BF16, and the sizes were checked.
+        Some(Bf16Kernel::Avx512Dot) => unsafe { multiply_dot(lhs, m, weights, out) },
+        _ => panic!("no bf16 kernel on this CPU; this is a bug (callers check first)"),
     }
 }
 
@@ -321,6 +378,143 @@ unsafe fn multiply_tiles(lhs: &[u16], m: usize, weights: &Bf16Weights, out: &mut
     }
 }
 
+/// Rows of the left-hand side per pass of the AVX-512 BF16 kernel.
+const DOT_ROWS: usize = 8;
+
+/// `multiply` with AVX-512 BF16 dot products (`vdpbf16ps`: per f32 lane, a pair of bf16
+/// products added to the accumulator) instead of tiles, on the same packed weights: each
+/// 64-byte row of a weight tile is one register of 16 columns x (pair of k). Eight rows x up to
+/// three column blocks of accumulators (24 registers) per pass.
+///
+/// # Safety
+/// The CPU must have AVX-512F and AVX-512 BF16; `lhs` and `out` as [`multiply`] asserts.
+#[cfg(target_arch = "x86_64")]
+#[target_feature(enable = "avx512f,avx512bf16")]
+unsafe fn multiply_dot(lhs: &[u16], m: usize, weights: &Bf16Weights, out: &mut [f32]) {
+    let mut block = 0;
+    while block < weights.column_blocks {
+        let group = (weights.column_blocks - block).min(3);
+        for row0 in (0..m).step_by(DOT_ROWS) {
+            let rows = (m - row0).min(DOT_ROWS);
+            // SAFETY: DOT_ROWS rows from row0 lie inside `lhs` (it holds padded_rows(m), a
+            // multiple of 32, which DOT_ROWS divides); `rows` rows of `out` from row0 exist.
+            unsafe {
+                let a = lhs.as_ptr().add(row0 * weights.lhs_stride());
+                let c = out.as_mut_ptr().add(row0 * weights.n);
+                match group {
+                    3 => dot_pass::<3>(a, weights, block, rows, c),
+                    2 => dot_pass::<2>(a, weights, block, rows, c),
+                    _ => dot_pass::<1>(a, weights, block, rows, c),
+                }
+            }
+        }
+        block += group;
+    }
+}
+
+/// One pass of [`multiply_dot`]: `NB` column blocks from `block`, the DOT_ROWS rows at `a`
+/// (their first `rows` stored at `c`, row stride `weights.n`).
+///
+/// # Safety
+/// As [`multiply_dot`]; `a` points at DOT_ROWS readable rows of `weights.lhs_stride()` bf16,
+/// `c` at `rows` writable rows of `weights.n` f32.
+#[cfg(target_arch = "x86_64")]
+#[target_feature(enable = "avx512f,avx512bf16")]
+#[inline]
+unsafe fn dot_pass<const NB: usize>(
+    a: *const u16,
+    weights: &Bf16Weights,
+    block: usize,
+    rows: usize,
+    c: *mut f32,
+) {
+    use std::arch::x86_64::{
+        __m512, __m512bh, _mm512_dpbf16_ps, _mm512_loadu_ps, _mm512_loadu_si512,
+        _mm512_mask_storeu_ps, _mm512_set1_epi32,
+    };
+    let stride = weights.lhs_stride();
+    let tile_len = TILE_ROWS * TILE_COLUMNS * 2;
+    // SAFETY: every pointer below stays inside the packed tiles of blocks block..block+NB,
+    // the DOT_ROWS rows at `a`, the bias rows, or the `rows` output rows (see the caller).
+    unsafe {
+        let mut acc: [[__m512; NB]; DOT_ROWS] =
+            [[_mm512_loadu_ps(weights.bias_rows[block].as_ptr()); NB]; DOT_ROWS];
+        for b in 1..NB {
+            let bias = _mm512_loadu_ps(weights.bias_rows[block + b].as_ptr());
+            for row in acc.iter_mut() {
+                row[b] = bias;
+            }
+        }
+        let tiles = weights.tiles.as_ptr();
+        for step in 0..weights.k_steps {
+            let tile: [*const u16; NB] = std::array::from_fn(|b| {
+                tiles.add(((block + b) * weights.k_steps + step) * tile_len)
+            });
+            let a_step = a.add(step * TILE_K);
+            for pair in 0..TILE_ROWS {
+                let w: [__m512bh; NB] = std::array::from_fn(|b| {
+                    std::mem::transmute(_mm512_loadu_si512(tile[b].add(pair * 32).cast()))
+                });
+                for (i, row) in acc.iter_mut().enumerate() {
+                    let x: __m512bh = std::mem::transmute(_mm512_set1_epi32(
+                        a_step
+                            .add(i * stride + 2 * pair)
+                            .cast::<i32>()
+                            .read_unaligned(),
+                    ));
+                    for b in 0..NB {
+                        row[b] = _mm512_dpbf16_ps(row[b], x, w[b]);
+                    }
+                }
+            }
+        }
+        for (i, row) in acc.iter().enumerate().take(rows) {
+            for (b, value) in row.iter().enumerate() {
+                let col0 = (block + b) * TILE_COLUMNS;
+                let cols = (weights.n - col0).min(TILE_COLUMNS);
+                let mask = if cols == TILE_COLUMNS {
+                    u16::MAX
+                } else {
+                    (1u16 << cols) - 1
+                };
+                _mm512_mask_storeu_ps(c.add(i * weights.n + col0), mask, *value);
+            }
+        }
+    }
+}
+
+/// Single-thread GFLOP/s of an `[m, k] x [k, n]` product (bias included) with the f32 gemm of
+/// the host kernels, and with this process's bf16 [`kernel`] (`None` without one): what
+/// `cargo bench --bench network` prints beside the machine's peak.
+pub fn product_gflops(m: usize, k: usize, n: usize) -> (f64, Option<f64>) {
+    let input: Vec<f32> = (0..m * k).map(|i| (i % 7) as f32 * 0.1).collect();
+    let matrix: Vec<f32> = (0..k * n).map(|i| (i % 5) as f32 * 0.1).collect();
+    let bias = vec![0.5f32; n];
+    let mut out = vec![0f32; m * n];
+    let flops = 2.0 * (m * k * n) as f64;
+    let mut rate = |product: &mut dyn FnMut(&mut [f32])| {
+        product(&mut out);
+        let runs = (2e9 / flops).clamp(3.0, 10_000.0) as usize;
+        let start = std::time::Instant::now();
+        for _ in 0..runs {
+            product(&mut out);
+        }
+        flops * runs as f64 / start.elapsed().as_secs_f64() / 1e9
+    };
+    let f32_rate =
+        rate(&mut |out| super::host_ops::matmul_bias(&input, m, k, &matrix, n, &bias, out));
+    let bf16_rate = available().then(|| {
+        let weights = Bf16Weights::new(&matrix, k, n, &bias);
+        let stride = weights.lhs_stride();
+        let mut lhs = vec![0u16; padded_rows(m) * stride];
+        for (row, values) in lhs.chunks_exact_mut(stride).zip(input.chunks_exact(k)) {
+            round_into(values, &mut row[..k]);
+        }
+        rate(&mut |out| multiply(&lhs, m, &weights, out))
+    });
+    (f32_rate, bf16_rate)
+}
+
 #[cfg(test)]
 mod tests {
     use super::*;
@@ -335,16 +529,12 @@ mod tests {
         assert!(from_bf16(to_bf16(f32::NAN)).is_nan());
     }
 
-    /// The tile kernel equals an f64 product of the bf16-rounded operands, for shapes with
-    /// every kind of edge: rows not a multiple of 32, k not a multiple of 32, n of 12 / 48 / 96
-    /// (one, an odd number of, and pairs of column blocks).
-    #[test]
-    fn tile_products_equal_the_rounded_operands_product() {
-        if !available() {
-            // Nothing to compare on a CPU without tiles; precision selection refuses bf16 there
-            // (tested in `precision`).
-            return;
-        }
+    type Kernel = unsafe fn(&[u16], usize, &Bf16Weights, &mut [f32]);
+
+    /// `kernel` equals an f64 product of the bf16-rounded operands, for shapes with every kind
+    /// of edge: rows not a multiple of 8 or 32, k not a multiple of 32, n of 12 / 20 / 48 / 80 /
+    /// 96 (one, an odd number of, and groups of column blocks, partial last blocks).
+    fn assert_equals_the_rounded_operands_product(kernel: Kernel) {
         let mut state = 0x2545_f491_4f6c_dd1du64;
         let mut random = move || {
             state ^= state << 13;
@@ -352,7 +542,13 @@ mod tests {
             state ^= state << 17;
             (state >> 40) as f32 / (1u64 << 24) as f32 - 0.5
         };
-        for (m, k, n) in [(37, 50, 12), (100, 216, 48), (64, 96, 96), (5, 384, 20)] {
+        for (m, k, n) in [
+            (37, 50, 12),
+            (100, 216, 48),
+            (64, 96, 96),
+            (5, 384, 20),
+            (9, 40, 80),
+        ] {
             let input: Vec<f32> = (0..m * k).map(|_| random()).collect();
             let matrix: Vec<f32> = (0..k * n).map(|_| random()).collect();
             let bias: Vec<f32> = (0..n).map(|_| random()).collect();
@@ -363,7 +559,9 @@ mod tests {
             for (row, values) in lhs.chunks_exact_mut(stride).zip(input.chunks_exact(k)) {
                 round_into(values, &mut row[..k]);
             }
-            multiply(&lhs, m, &weights, &mut out);
+            // SAFETY: the callers checked the CPU; the operands have the sizes `multiply`
+            // asserts.
+            unsafe { kernel(&lhs, m, &weights, &mut out) };
             let rounded = |v: f32| from_bf16(to_bf16(v)) as f64;
             for i in 0..m {
                 for j in 0..n {
@@ -378,6 +576,33 @@ mod tests {
                     );
                 }
             }
+        }
+    }
+
+    #[test]
+    #[cfg(target_arch = "x86_64")]
+    fn tile_products_equal_the_rounded_operands_product() {
+        if tiles_available() {
+            assert_equals_the_rounded_operands_product(multiply_tiles);
+        }
+    }
+
+    #[test]
+    #[cfg(target_arch = "x86_64")]
+    fn dot_products_equal_the_rounded_operands_product() {
+        if dot_available() {
+            assert_equals_the_rounded_operands_product(multiply_dot);
+        }
+    }
+
+    /// Where neither kernel can run, nothing claims one (and precision selection refuses bf16
+    /// there, tested in `precision`).
+    #[test]
+    fn the_kernel_is_one_this_cpu_has() {
+        match kernel() {
+            Some(Bf16Kernel::AmxTiles) => assert!(tiles_available()),
+            Some(Bf16Kernel::Avx512Dot) => assert!(dot_available() && !tiles_available()),
+            None => assert!(!dot_available() && !tiles_available()),
         }
     }
 }
