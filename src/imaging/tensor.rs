@@ -2,7 +2,7 @@
 //! normalisation under the two input conventions the official checkpoint knows.
 
 use burn::prelude::*;
-use fast_image_resize::images::Image;
+use fast_image_resize::images::{Image, ImageRef};
 use fast_image_resize::{FilterType, PixelType, ResizeAlg, ResizeOptions, Resizer};
 
 use super::RgbImage32;
@@ -102,18 +102,29 @@ pub fn resize_rgb(image: &RgbImage32, width: u32, height: u32) -> RgbImage32 {
     if image.width == width && image.height == height {
         return image.clone();
     }
-    let src_bytes: Vec<u8> = image.pixels.iter().flat_map(|v| v.to_le_bytes()).collect();
-    let src = Image::from_vec_u8(image.width, image.height, src_bytes, PixelType::F32x3)
-        .expect("buffer length matches the image size; this is a bug");
-    let mut dst = Image::new(width, height, PixelType::F32x3);
-    let options = ResizeOptions::new().resize_alg(ResizeAlg::Convolution(FilterType::Bilinear));
-    Resizer::new()
-        .resize(&src, &mut dst, &options)
-        .expect("same pixel type on both sides; this is a bug");
-    let pixels = dst
-        .buffer()
-        .chunks_exact(4)
-        .map(|b| f32::from_le_bytes([b[0], b[1], b[2], b[3]]))
-        .collect();
+    // Both images are viewed in place as bytes: no conversion copies of a frame that can be
+    // tens of megabytes.
+    let src = ImageRef::new(
+        image.width,
+        image.height,
+        bytemuck::cast_slice(&image.pixels),
+        PixelType::F32x3,
+    )
+    .expect("buffer length and alignment match the image; this is a bug");
+    let mut pixels = vec![0f32; width as usize * height as usize * 3];
+    {
+        let mut dst = Image::from_slice_u8(
+            width,
+            height,
+            bytemuck::cast_slice_mut(&mut pixels),
+            PixelType::F32x3,
+        )
+        .expect("buffer length and alignment match the image; this is a bug");
+        let options =
+            ResizeOptions::new().resize_alg(ResizeAlg::Convolution(FilterType::Bilinear));
+        Resizer::new()
+            .resize(&src, &mut dst, &options)
+            .expect("same pixel type on both sides; this is a bug");
+    }
     RgbImage32::new(width, height, pixels)
 }
