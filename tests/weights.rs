@@ -60,6 +60,38 @@ fn import_round_trips_exactly() {
     assert_eq!(forward(&original, &device), forward(&converted, &device));
 }
 
+/// `weights export` writes our weights under the official checkpoint's names and shapes (what
+/// `training/train.py --init-weights` loads into the PyTorch model), and reading that file back
+/// gives the same network to the bit.
+#[test]
+fn export_writes_the_official_layout_and_reads_back_exactly() {
+    let tmp = tempfile::tempdir().unwrap();
+    let out = tmp.path().join("default.safetensors");
+    let (code, _, stderr) = posematch(&["weights", "export", "--out", out.to_str().unwrap()]);
+    assert_eq!(code, 0, "{stderr}");
+    let device = Device::flex();
+    let embedded = posematch::model::WeightsSource::Embedded
+        .load(&device)
+        .unwrap();
+    let exported = load_weights(&out, &device).unwrap();
+    assert_eq!(forward(&embedded, &device), forward(&exported, &device));
+    let Some(dir) = reference_dir() else { return };
+    let shapes = |bytes: &[u8]| -> Vec<(String, Vec<usize>)> {
+        let st = SafeTensors::deserialize(bytes).unwrap();
+        let mut shapes: Vec<(String, Vec<usize>)> = st
+            .tensors()
+            .into_iter()
+            .filter(|(name, _)| !name.ends_with("num_batches_tracked"))
+            .map(|(name, view)| (name, view.shape().to_vec()))
+            .collect();
+        shapes.sort();
+        shapes
+    };
+    let official = std::fs::read(dir.join("tdcm-official.safetensors")).unwrap();
+    let ours = std::fs::read(&out).unwrap();
+    assert_eq!(shapes(&ours), shapes(&official));
+}
+
 /// Writes the official tensors to a new safetensors file after `edit` changed the set.
 fn edited_checkpoint(
     dir: &std::path::Path,

@@ -79,6 +79,10 @@ def parse_args(argv=None):
     a.add_argument("--validation", help="folder of held-out photos (default: every 10th corpus photo)")
     a.add_argument("--out", required=True, help="run folder: checkpoint.pt, weights.pth, log.txt")
     a.add_argument("--resume", action="store_true", help="continue from --out/checkpoint.pt")
+    a.add_argument("--init-weights",
+                   help="start from these weights instead of random initialisation: a "
+                        ".safetensors file from `posematch weights export` (our own weights "
+                        "only, never the authors'); a fresh optimizer and schedule")
     a.add_argument("--steps", type=int, default=20000, help="steps of the whole schedule (all runs)")
     a.add_argument("--minutes", type=float, default=8.0, help="stop this run after this many minutes")
     a.add_argument("--batch", type=int, default=64)
@@ -111,7 +115,47 @@ def parse_args(argv=None):
     for name in args.level.split(","):
         if name not in P.LEVELS:
             a.error(f"unknown level {name}: use S1, S1.5, S2 or S2.5")
+    if args.init_weights and args.resume:
+        a.error("--init-weights starts a new run; --resume continues one: choose one")
     return args
+
+
+SAFETENSORS_DTYPES = {"F32": np.float32, "F16": np.float16, "I64": np.int64}
+
+
+def read_safetensors(path):
+    """A safetensors file as {name: CPU tensor}, read without the `safetensors` package (the GPU
+    machine may lack it): an 8-byte little-endian header length, a JSON header, raw data."""
+    import json
+    raw = Path(path).read_bytes()
+    length = int.from_bytes(raw[:8], "little")
+    header = json.loads(raw[8:8 + length])
+    data = raw[8 + length:]
+    tensors = {}
+    for name, info in header.items():
+        if name == "__metadata__":
+            continue
+        if info["dtype"] not in SAFETENSORS_DTYPES:
+            raise SystemExit(f"{path}: tensor {name} has dtype {info['dtype']}, not one we read")
+        start, end = info["data_offsets"]
+        array = np.frombuffer(data[start:end], dtype=SAFETENSORS_DTYPES[info["dtype"]])
+        tensors[name] = torch.from_numpy(array.reshape(info["shape"]).copy())
+    return tensors
+
+
+def load_init_weights(model, path):
+    """Loads `path` into `model`; every parameter and buffer must be there with its shape except
+    BatchNorm's `num_batches_tracked` counters (training bookkeeping, which our export omits)."""
+    tensors = read_safetensors(path)
+    expected = model.state_dict()
+    problems = [f"{k}: missing" for k in expected
+                if k not in tensors and not k.endswith("num_batches_tracked")]
+    problems += [f"{k}: not in the model" for k in tensors if k not in expected]
+    problems += [f"{k}: shape {tuple(v.shape)}, model {tuple(expected[k].shape)}"
+                 for k, v in tensors.items() if k in expected and v.shape != expected[k].shape]
+    if problems:
+        raise SystemExit(f"--init-weights {path} does not fit the model: " + "; ".join(problems[:5]))
+    model.load_state_dict(tensors, strict=False)
 
 
 def train(args):
@@ -167,6 +211,10 @@ def train(args):
         if device.type == "cuda" and state.get("cuda_rng") is not None:
             torch.cuda.set_rng_state(state["cuda_rng"].cpu())
         say(f"resumed at step {step} ({pairs_seen} pairs seen)")
+    elif args.init_weights:
+        load_init_weights(model, args.init_weights)
+        say(f"from {args.init_weights} (seed {args.seed}); {len(train_photos)} training photos, "
+            f"{len(held_photos)} held out")
     else:
         say(f"from random initialisation (seed {args.seed}); {len(train_photos)} training photos, "
             f"{len(held_photos)} held out")

@@ -61,6 +61,16 @@ pub enum WeightsCommand {
         #[arg(long)]
         out: PathBuf,
     },
+    /// Write weights (default: the embedded ones) as a .safetensors file with the official
+    /// checkpoint's tensor names and layouts, which `training/train.py --init-weights` starts a
+    /// GPU run from and `weights import` reads back.
+    Export {
+        /// `default` (embedded), or a .bpk/.pth/.safetensors file.
+        #[arg(long = "from", default_value = "default")]
+        from: String,
+        #[arg(long)]
+        out: PathBuf,
+    },
 }
 
 /// Which answers count and which network peaks are verified: shared by `match` and `eval`.
@@ -180,6 +190,13 @@ pub fn run(cli: Cli) -> Result<(), CliError> {
             let device = select_device()?;
             let model = load_weights(&from, &device)?;
             save_weights(&model, &out)?;
+            eprintln!("wrote {}", out.display());
+            Ok(())
+        }
+        Command::Weights(WeightsCommand::Export { from, out }) => {
+            let device = select_device()?;
+            let model = WeightsSource::from_path(Some(Path::new(&from))).load(&device)?;
+            crate::model::export_pytorch_safetensors(&model, &out)?;
             eprintln!("wrote {}", out.display());
             Ok(())
         }

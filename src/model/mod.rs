@@ -31,5 +31,5 @@ pub use tdcm::{
 };
 pub use weights::{
     DEFAULT_WEIGHTS, DEFAULT_WEIGHTS_NAME, LoadError, PYTORCH_KEY_MAP, WeightsFormat,
-    WeightsSource, load_weights, load_weights_from_bytes, save_weights,
+    WeightsSource, export_pytorch_safetensors, load_weights, load_weights_from_bytes, save_weights,
 };

@@ -231,6 +231,53 @@ pub fn save_weights(model: &Tdcm, path: &Path) -> Result<(), LoadError> {
         })
 }
 
+/// Our module paths → checkpoint names: the inverse of [`PYTORCH_KEY_MAP`], applied in order
+/// (a block's `conv_dw`/`norm` before its `mlp` layers, which the first rule must not touch).
+pub const PYTORCH_EXPORT_KEY_MAP: &[(&str, &str)] = &[
+    (r"^template_encoder\.backbone\.", "backbone_T."),
+    (r"^search_matcher\.backbone\.", "backbone_O."),
+    (r"\.stem_conv\.", ".stem.0."),
+    (r"\.stem_norm\.", ".stem.1."),
+    (
+        r"\.blocks\.(\d+)\.(conv_dw|norm)\.",
+        ".stage1.blocks.$1.$2.",
+    ),
+    (
+        r"\.blocks\.(\d+)\.(fc1|grn|fc2)\.",
+        ".stage1.blocks.$1.mlp.$2.",
+    ),
+    (r"^search_matcher\.fusion\.", "pointwise_conv."),
+    (r"^search_matcher\.decoder\.(conv1|bn1|conv2|bn2)\.", "$1."),
+    (
+        r"^search_matcher\.heads\.(score|sign|cos|scale_x|scale_y)\.conv3x3\.",
+        "conv_$1.0.",
+    ),
+    (
+        r"^search_matcher\.heads\.(score|sign|cos|scale_x|scale_y)\.conv1x1\.",
+        "conv_$1.2.",
+    ),
+];
+
+/// Writes `model` as a safetensors file with the official checkpoint's names and layouts (Linear
+/// weights `[out, in]`, norms' `weight`/`bias`): what `training/train.py --init-weights` starts
+/// from, so a GPU run can continue our own weights. `load_weights` reads it back unchanged.
+/// Overwrites `path`.
+pub fn export_pytorch_safetensors(model: &Tdcm, path: &Path) -> Result<(), LoadError> {
+    let remapper = KeyRemapper::from_patterns(PYTORCH_EXPORT_KEY_MAP.to_vec())
+        .expect("static key map is valid regex");
+    let mut store = SafetensorsStore::from_file(path)
+        .overwrite(true)
+        .remap(remapper)
+        .with_to_adapter(burn::store::BurnToPyTorchAdapter)
+        .metadata("format", "tdcm-official-names");
+    model
+        .save_into(&mut store)
+        .map_err(|e| LoadError::Unreadable {
+            path: path.to_owned(),
+            message: e.to_string(),
+        })
+}
+
 /// Turns burn-store's report into a hard error on the first problem, so that a wrong checkpoint
 /// never runs with half-random weights.
 fn check_complete(result: &ApplyResult, source_name: &str) -> Result<(), LoadError> {

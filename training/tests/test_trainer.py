@@ -173,3 +173,56 @@ def test_export_round_trip(tmp_path):
     s = normalise(torch.rand(2, 3, 64, 64))
     with torch.no_grad():
         assert torch.equal(model(t, s), again(t, s))
+
+
+def write_safetensors(tensors, path):
+    """The minimal safetensors writer the test needs (f32 and i64)."""
+    import json
+    header, blobs, offset = {}, [], 0
+    for name, tensor in tensors.items():
+        array = tensor.detach().cpu().contiguous().numpy()
+        blob = array.tobytes()
+        dtype = {np.dtype(np.float32): "F32", np.dtype(np.int64): "I64"}[array.dtype]
+        header[name] = {"dtype": dtype, "shape": list(array.shape), "data_offsets": [offset, offset + len(blob)]}
+        blobs.append(blob)
+        offset += len(blob)
+    encoded = json.dumps(header).encode()
+    encoded += b" " * (-len(encoded) % 8)
+    Path(path).write_bytes(len(encoded).to_bytes(8, "little") + encoded + b"".join(blobs))
+
+
+def test_init_weights_load_exactly_and_refuse_what_does_not_fit(tmp_path):
+    torch.manual_seed(1)
+    source = Tdcm().eval()
+    state = {k: v for k, v in source.state_dict().items() if not k.endswith("num_batches_tracked")}
+    path = tmp_path / "ours.safetensors"
+    write_safetensors(state, path)
+    torch.manual_seed(2)
+    model = Tdcm().eval()
+    T.load_init_weights(model, path)
+    t = normalise(torch.rand(2, 3, 36, 36))
+    s = normalise(torch.rand(2, 3, 64, 64))
+    with torch.no_grad():
+        assert torch.equal(model(t, s), source(t, s))
+    del state["conv1.weight"]
+    write_safetensors(state, path)
+    with pytest.raises(SystemExit, match="conv1.weight: missing"):
+        T.load_init_weights(Tdcm(), path)
+
+
+def test_init_weights_read_what_posematch_exports(tmp_path):
+    """`posematch weights export` (Rust) writes what `--init-weights` loads: needs the binary."""
+    import shutil
+    import subprocess
+    root = Path(__file__).resolve().parents[2]
+    binary = root / "target/release/posematch"
+    if not binary.is_file():
+        binary = shutil.which("posematch")
+    if not binary:
+        pytest.skip("no posematch binary (cargo build --release)")
+    path = tmp_path / "default.safetensors"
+    subprocess.run([str(binary), "weights", "export", "--out", str(path)], check=True)
+    model = Tdcm().eval()
+    T.load_init_weights(model, path)
+    tensors = T.read_safetensors(path)
+    assert torch.equal(model.conv1.weight, tensors["conv1.weight"])
