@@ -120,8 +120,7 @@ pub fn resize_rgb(image: &RgbImage32, width: u32, height: u32) -> RgbImage32 {
             PixelType::F32x3,
         )
         .expect("buffer length and alignment match the image; this is a bug");
-        let options =
-            ResizeOptions::new().resize_alg(ResizeAlg::Convolution(FilterType::Bilinear));
+        let options = ResizeOptions::new().resize_alg(ResizeAlg::Convolution(FilterType::Bilinear));
         Resizer::new()
             .resize(&src, &mut dst, &options)
             .expect("same pixel type on both sides; this is a bug");
