@@ -77,15 +77,15 @@ pub enum WeightsCommand {
 #[derive(Args, Debug, Clone)]
 pub struct VerificationArgs {
     /// Report only answers scoring at least this (0..1): the verified score of the template at
-    /// the refined pose, or the heatmap value with --no-refine. Default 0.8 (0.5 on the
+    /// the refined pose, or the heatmap value with --no-refine. Default 0.9 (0.5 on the
     /// heatmap with --no-refine).
     #[arg(long)]
     pub min_score: Option<f32>,
     /// Heatmap value (0..1) from which a network peak is a candidate for verification.
     #[arg(long, default_value_t = crate::matcher::options::DEFAULT_CANDIDATE_THRESHOLD)]
     pub candidate_threshold: f32,
-    /// Most candidates verified per network tile; 0 = automatic (3 per --max-instances, at
-    /// least 100).
+    /// Most candidates verified per search (the best of every tile's peaks); 0 = automatic (3
+    /// per --max-instances, at least 100).
     #[arg(long, default_value_t = 0)]
     pub max_candidates: usize,
 }

@@ -62,8 +62,8 @@ pub struct Settings {
     /// Seconds to let in-flight requests finish after SIGTERM/Ctrl-C.
     pub shutdown_grace_seconds: u64,
     /// Match requests that leave an option at 0 get these: the least score of an answer
-    /// (unset: 0.8 on the verified score, 0.5 on the heatmap with `no_refine`), the heatmap
-    /// value from which a peak is a candidate, and the most candidates verified per tile
+    /// (unset: 0.9 on the verified score, 0.5 on the heatmap with `no_refine`), the heatmap
+    /// value from which a peak is a candidate, and the most candidates verified per search
     /// (0 = automatic).
     #[serde(default)]
     pub min_score: Option<f32>,

@@ -126,7 +126,7 @@ pub struct MatchOutcome {
 pub struct Proposal {
     /// Network poses in image coordinates (`score` = `network_score` = heatmap value), best
     /// first: every peak at or above the candidate threshold (`min_score` without refinement),
-    /// up to the budget per tile.
+    /// the best of every tile's up to the budget of the search.
     pub candidates: Vec<Pose>,
     /// Time so far (prepare, network, peaks).
     pub timings: MatchTimings,
@@ -297,10 +297,17 @@ impl Matcher {
             }
         }
         let count = results.iter().filter(|r| r.is_ok()).count().max(1) as f64;
-        for proposal in results.iter_mut().flatten() {
+        for (proposal, job) in results.iter_mut().zip(jobs) {
+            let Ok(proposal) = proposal else { continue };
             proposal
                 .candidates
                 .sort_by(|a, b| b.network_score.total_cmp(&a.network_score));
+            // The budget holds for the whole search, not per tile: a 2048 frame is 9 tiles,
+            // and 9 budgets of low peaks cost the screen more than they find (README
+            // "Verified candidates").
+            proposal
+                .candidates
+                .truncate(peak_threshold_and_limit(job.options).1);
             proposal.timings = MatchTimings {
                 prepare_ms: prepare_ms / count,
                 network_ms: network_ms / count,

@@ -122,8 +122,9 @@ pub struct MatchOptions {
     /// Peaks of the network's heatmap at or above this are candidates for verification
     /// (ignored with `refine` off, where `min_score` selects the peaks).
     pub candidate_threshold: f32,
-    /// Most candidates verified per network tile; 0 means [`MatchOptions::candidate_budget`]'s
-    /// automatic budget.
+    /// Most candidates verified per search (each network tile proposes at most this many and
+    /// the best of them all are kept); 0 means [`MatchOptions::candidate_budget`]'s automatic
+    /// budget.
     pub max_candidates: usize,
     /// Two answers whose rotated boxes overlap more than this (IoU) are one object.
     pub max_overlap: f32,
@@ -140,21 +141,21 @@ pub struct MatchOptions {
 /// Upper bound on `max_instances`: beyond this a request is almost certainly a mistake.
 pub const MAX_INSTANCES_LIMIT: usize = 1000;
 
-/// Upper bound on `max_candidates` (per tile).
+/// Upper bound on `max_candidates` (per search).
 pub const MAX_CANDIDATES_LIMIT: usize = 4000;
 
 /// Default `min_score` on the verified score: at most about 1 % of the answers on
 /// multi-instance scenes of the tuning photos are not objects (README "What a score means").
-pub const DEFAULT_MIN_SCORE: f32 = 0.8;
+pub const DEFAULT_MIN_SCORE: f32 = 0.9;
 
 /// Default `min_score` on the heatmap value when refinement is off (the network-only path's
 /// threshold before verification existed).
 pub const NETWORK_MIN_SCORE: f32 = 0.5;
 
 /// Default `candidate_threshold` (heatmap value; README "Verified candidates").
-pub const DEFAULT_CANDIDATE_THRESHOLD: f32 = 0.01;
+pub const DEFAULT_CANDIDATE_THRESHOLD: f32 = 1e-4;
 
-/// Fewest candidates verified per tile by default: a weakly trained network's object is often
+/// Fewest candidates verified per search by default: a weakly trained network's object is often
 /// among its first few dozen peaks, not first (README "Verified candidates").
 pub const MIN_CANDIDATE_BUDGET: usize = 100;
 
@@ -175,7 +176,7 @@ impl Default for MatchOptions {
 }
 
 impl MatchOptions {
-    /// Most candidates verified per network tile: `max_candidates`, or by default three per
+    /// Most candidates verified per search: `max_candidates`, or by default three per
     /// wanted instance and at least [`MIN_CANDIDATE_BUDGET`].
     pub fn candidate_budget(&self) -> usize {
         match self.max_candidates {

@@ -1,0 +1,165 @@
+//! Why verified answers miss: for each generated pair (S1.5, 36x36) whose verified answer is
+//! wrong, where the true object was lost — no candidate at all above the candidate threshold, no
+//! candidate near it, screened below the survivors, confirmed lower than a decoy, or a decoy
+//! that genuinely matches at least as well as the truth — with the rank and heatmap value of
+//! the object's peak among all peaks. Mirrors `verify_candidates` (best two screens confirmed).
+//! Use it on tuning photos, never on evaluation photos:
+//!
+//! `cargo run --release --example diagnose -- --images DIR --count 500 [--weights W]`
+
+use clap::Parser;
+use posematch::cli::{ModelArgs, load_model};
+use posematch::evaluation::pair_error;
+use posematch::geometry::Pose;
+use posematch::imaging::GrayImage32;
+use posematch::matcher::{MatchJob, MatchOptions, ValidOptions};
+use posematch::refine::Verifier;
+use posematch::synth::{Level, PairSpec, PhotoSet, make_pair};
+
+#[derive(Parser)]
+struct Args {
+    #[arg(long)]
+    images: std::path::PathBuf,
+    #[arg(long, default_value_t = 300)]
+    count: u64,
+    #[arg(long, default_value_t = 0)]
+    seed: u64,
+    #[command(flatten)]
+    model: ModelArgs,
+}
+
+fn main() {
+    let args = Args::parse();
+    let matcher = load_model(&args.model).unwrap();
+    let photos = PhotoSet::load(&args.images, 224).unwrap();
+    let spec = PairSpec {
+        level: "S1.5".parse::<Level>().unwrap(),
+        template_width: 36,
+        template_height: 36,
+        search_side: 224,
+        min_structure: posematch::synth::DEFAULT_MIN_STRUCTURE,
+    };
+    let options: ValidOptions = MatchOptions {
+        max_instances: 1,
+        ..MatchOptions::default()
+    }
+    .validate()
+    .unwrap();
+    let mut tally = std::collections::BTreeMap::<&str, usize>::new();
+    for index in 0..args.count {
+        let pair = make_pair(&photos, &spec, args.seed, index).unwrap();
+        let truth = pair.truth[0];
+        let encoded = matcher.encode_template(&pair.template).unwrap();
+        let wide_options: ValidOptions = MatchOptions {
+            max_instances: 1,
+            candidate_threshold: 1e-6,
+            max_candidates: 2000,
+            ..MatchOptions::default()
+        }
+        .validate()
+        .unwrap();
+        let job = MatchJob {
+            template: &encoded,
+            image: &pair.search,
+            options: &wide_options,
+        };
+        let proposal = matcher
+            .propose(std::slice::from_ref(&job))
+            .pop()
+            .unwrap()
+            .unwrap();
+        let candidates: Vec<Pose> = proposal
+            .candidates
+            .iter()
+            .filter(|p| p.network_score >= options.candidate_threshold)
+            .take(options.candidate_budget())
+            .copied()
+            .collect();
+        let image = GrayImage32::from_rgb(&pair.search);
+        let template = &encoded.gray;
+        let verifier = Verifier::new(template, &image, None, |_| true);
+        let ok = |p: &Pose| pair_error(p, &truth, 36.0, 36.0).iou >= 0.5;
+        // Screen every candidate, rank.
+        let mut screened: Vec<(usize, Pose, posematch::refine::Screened)> = candidates
+            .iter()
+            .enumerate()
+            .map(|(i, c)| (i, *c, verifier.screen(c)))
+            .collect();
+        screened.sort_by(|a, b| b.2.score.total_cmp(&a.2.score));
+        if screened.is_empty() {
+            *tally.entry("no candidates at all").or_default() += 1;
+            let near = proposal
+                .candidates
+                .iter()
+                .enumerate()
+                .find(|(_, c)| (c.x - truth.x).hypot(c.y - truth.y) < 8.0)
+                .map(|(i, c)| (i, c.network_score));
+            println!(
+                "#{index:4} no candidates: {} wide peaks, top {:?}, near truth {:?}",
+                proposal.candidates.len(),
+                proposal.candidates.first().map(|c| c.network_score),
+                near
+            );
+            continue;
+        }
+        let best = &screened[0];
+        let winner = verifier.confirm(&best.2, &best.1);
+        let second = screened.get(1).map(|s| verifier.confirm(&s.2, &s.1));
+        let picked = match second {
+            Some(s) if s.score > winner.score => s,
+            _ => winner,
+        };
+        if ok(&picked.pose) && picked.score >= 0.8 {
+            *tally.entry("right").or_default() += 1;
+            continue;
+        }
+        // Oracle: screen and confirm at the truth.
+        let oracle_screen = verifier.screen(&truth);
+        let oracle = verifier.confirm(&oracle_screen, &truth);
+        let near: Vec<usize> = candidates
+            .iter()
+            .enumerate()
+            .filter(|(_, c)| (c.x - truth.x).hypot(c.y - truth.y) < 8.0)
+            .map(|(i, _)| i)
+            .collect();
+        let rank_of_true_screen = screened.iter().position(|s| ok(&s.2.pose));
+        let wide_near = proposal
+            .candidates
+            .iter()
+            .enumerate()
+            .filter(|(_, c)| (c.x - truth.x).hypot(c.y - truth.y) < 8.0)
+            .map(|(i, c)| (i, c.network_score))
+            .next();
+        let top_net = proposal.candidates.first().map(|c| c.network_score);
+        let kind = if ok(&picked.pose) {
+            "right pose, score < 0.8"
+        } else if oracle.score <= picked.score + 1e-3 {
+            "decoy matches at least as well as truth"
+        } else if near.is_empty() && rank_of_true_screen.is_none() {
+            "no candidate near truth"
+        } else if rank_of_true_screen.is_none() {
+            "candidate near, screen did not reach truth"
+        } else if rank_of_true_screen.unwrap() >= 2 {
+            "screen ranked truth below survivors"
+        } else {
+            "confirm lost truth"
+        };
+        *tally.entry(kind).or_default() += 1;
+        println!(
+            "#{index:4} {kind:45} picked score {:.3} oracle {:.3} (screen {:.3}) net-rank {:?} of {} near, true screen rank {:?} best screen {:.3}, wide near {:?} top {:?}, truth angle {:.0} s {:.2}/{:.2}",
+            picked.score,
+            oracle.score,
+            oracle_screen.score,
+            near.first(),
+            candidates.len(),
+            rank_of_true_screen,
+            best.2.score,
+            wide_near,
+            top_net,
+            truth.angle_deg,
+            truth.scale_x,
+            truth.scale_y,
+        );
+    }
+    println!("{tally:#?}");
+}
