@@ -2,8 +2,9 @@
 //! "Verified candidates"): network top-1 alone, network top-1 refined (the default before
 //! verification), and the verified default path (`max_instances` 1), on the same generated
 //! pairs, for the embedded default weights and, when `../shared/reference` is present, the
-//! authors' checkpoint. Before the timings it prints where the verified path's time goes
-//! (network, screen, confirmation) and each path's success on these pairs.
+//! authors' checkpoint, in the default arithmetic (`--precision auto`). Before the timings it
+//! prints where the verified path's time goes (network, screen, confirmation) and each path's
+//! success on these pairs.
 //!
 //! Pairs: 24 held-out pairs cut from `POSEMATCH_BENCH_PHOTOS` (default
 //! `/usr/share/backgrounds/mate`, Debian's mate-backgrounds) at S1.5 with 36x36 templates.
@@ -23,7 +24,7 @@ use posematch::imaging::GrayImage32;
 use posematch::imaging::InputConvention;
 use posematch::matcher::candidates::select;
 use posematch::matcher::{EncodedTemplate, MatchOptions, MatchTimings, Matcher};
-use posematch::model::{WeightsSource, load_weights, select_device};
+use posematch::model::{Precision, WeightsSource, load_weights, select_device};
 use posematch::refine::refine_pose;
 use posematch::synth::{Level, PairSpec, PhotoSet, SyntheticPair, make_pair};
 
@@ -116,7 +117,11 @@ fn benches(c: &mut Criterion) {
         models.push(("official", model));
     }
     for (name, model) in models {
-        let matcher = Matcher::new(model, device.clone(), InputConvention::ImagenetRgb);
+        // The CLI's and the service's default arithmetic (`auto`: bf16 where the CPU has it).
+        let matcher = Matcher::new(model, device.clone(), InputConvention::ImagenetRgb)
+            .with_precision(Precision::Auto)
+            .unwrap_or_else(|e| panic!("{e}"));
+        let arithmetic = matcher.network().precision().arithmetic();
         // Where the verified path's time goes, and what each path finds on these pairs.
         let start = Instant::now();
         let runs: Vec<(Option<Pose>, MatchTimings)> =
@@ -129,7 +134,7 @@ fn benches(c: &mut Criterion) {
         let network: Vec<Option<Pose>> = pairs.iter().map(|p| network_top1(&matcher, p)).collect();
         let refined: Vec<Option<Pose>> = pairs.iter().map(|p| refined_top1(&matcher, p)).collect();
         println!(
-            "{name} weights, {} pairs: verified {total_ms:.1} ms/pair = prepare {:.1} + network {:.1} + peaks {:.1} + screen {:.1} + confirm {:.1} (+ template encode); Succ network {} / refined {} / verified {}",
+            "{name} weights ({arithmetic}), {} pairs: verified {total_ms:.1} ms/pair = prepare {:.1} + network {:.1} + peaks {:.1} + screen {:.1} + confirm {:.1} (+ template encode); Succ network {} / refined {} / verified {}",
             pairs.len(),
             mean(|t| t.prepare_ms),
             mean(|t| t.network_ms),

@@ -13,8 +13,11 @@
 //! form every iteration, so minimising it is maximising the zero-mean normalised correlation the
 //! rest of the refinement scores with (lighting changes between template and image cost nothing).
 
+use multiversion::multiversion;
+
+use super::correlate::{Affine, LANES, PointLanes, Tap};
 use crate::geometry::Pose;
-use crate::imaging::{BilinearTap, GrayImage32, gaussian_blur, gradients};
+use crate::imaging::{GrayImage32, gaussian_blur, gradients};
 
 /// A blurred window of the search image with its gradients, in window coordinates.
 pub(super) struct GradientWindow {
@@ -62,40 +65,20 @@ impl GradientWindow {
         }
     }
 
-    /// Bilinear tap at image coordinates `(x, y)`, clamped to the window.
-    #[inline]
-    fn tap(&self, x: f32, y: f32) -> BilinearTap {
-        BilinearTap::new(
-            self.image.width,
-            self.image.height,
-            x - self.x0,
-            y - self.y0,
-        )
-    }
-
-    /// Value at image coordinates `(x, y)` (bilinear, clamped to the window).
-    #[inline]
-    fn value(&self, x: f32, y: f32) -> f32 {
-        self.tap(x, y).apply(&self.image.values)
-    }
-
-    /// Value and gradient at image coordinates `(x, y)` (bilinear, clamped to the window).
-    #[inline]
-    fn sample(&self, x: f32, y: f32) -> (f32, f32, f32) {
-        let tap = self.tap(x, y);
-        (
-            tap.apply(&self.image.values),
-            tap.apply(&self.gx),
-            tap.apply(&self.gy),
-        )
+    /// The whole of `image`, blurred and with its gradients: one window that serves every
+    /// candidate of an image (inside a window's reach the values equal those of
+    /// [`GradientWindow::new`], whose margin is the blur's radius).
+    pub(super) fn whole(image: &GrayImage32, sigma: f32) -> Self {
+        let (w, h) = (image.width as f32, image.height as f32);
+        Self::new(image, 0.5 * w, 0.5 * h, w.max(h) + 1.0, sigma)
     }
 }
 
 /// Template points: offsets from the template centre and values, taken from the template
 /// blurred to match the window's blur at the expected scale.
 pub(super) struct AlignPoints {
-    offsets: Vec<(f32, f32)>,
-    values: Vec<f32>,
+    /// The points, each weighted by its template value `T`.
+    lanes: PointLanes,
     /// Σ T and Σ (T − mean)², for the closed-form cost.
     sum: f64,
     spread: f64,
@@ -109,8 +92,7 @@ impl AlignPoints {
         let mean = sum / values.len().max(1) as f64;
         let spread = values.iter().map(|&t| (t as f64 - mean).powi(2)).sum();
         Self {
-            offsets,
-            values,
+            lanes: PointLanes::new(&offsets, &values),
             sum,
             spread,
         }
@@ -182,55 +164,15 @@ fn apply(pose: &Pose, step: &[f64; 5]) -> Pose {
     }
 }
 
-/// Samples the window at every template point under `pose`.
-fn sample_all(points: &AlignPoints, window: &GradientWindow, pose: &Pose) -> Vec<(f32, f32, f32)> {
-    let (s, c) = pose.angle_deg.to_radians().sin_cos();
-    points
-        .offsets
-        .iter()
-        .map(|&(u, v)| {
-            window.sample(
-                pose.x + pose.scale_x * u * c + pose.scale_y * v * s,
-                pose.y - pose.scale_x * u * s + pose.scale_y * v * c,
-            )
-        })
-        .collect()
-}
-
-/// Gain and offset `(α, β)` that best map image values onto template values.
-fn photometric_fit(points: &AlignPoints, samples: &[(f32, f32, f32)]) -> Option<(f64, f64)> {
-    let n = samples.len() as f64;
-    let (mut si, mut st, mut sii, mut sit) = (0f64, 0f64, 0f64, 0f64);
-    for (&(i, _, _), &t) in samples.iter().zip(&points.values) {
-        let (i, t) = (i as f64, t as f64);
-        si += i;
-        st += t;
-        sii += i * i;
-        sit += i * t;
-    }
-    let variance = sii - si * si / n;
-    if variance <= 1e-9 {
-        return None;
-    }
-    let alpha = (sit - si * st / n) / variance;
-    Some((alpha, (st - alpha * si) / n))
-}
-
 /// Residual sum of squares after the photometric fit, relative to the template's variance
 /// (`1 − ZNCC²`), or `None` where the image is flat or the match inverted.
 fn residual_cost(points: &AlignPoints, window: &GradientWindow, pose: &Pose) -> Option<f64> {
-    let (s, c) = pose.angle_deg.to_radians().sin_cos();
-    let n = points.values.len() as f64;
-    let (mut si, mut sii, mut sit) = (0f64, 0f64, 0f64);
-    for (&(u, v), &t) in points.offsets.iter().zip(&points.values) {
-        let i = window.value(
-            pose.x + pose.scale_x * u * c + pose.scale_y * v * s,
-            pose.y - pose.scale_x * u * s + pose.scale_y * v * c,
-        ) as f64;
-        si += i;
-        sii += i * i;
-        sit += i * t as f64;
-    }
+    let n = points.lanes.len() as f64;
+    // Sums of I − reference: variance and covariance do not change with the shift.
+    let sums = points
+        .lanes
+        .sums_at(&window.image, &Affine::of(pose, window.x0, window.y0));
+    let (si, sii, sit) = (sums.sum, sums.sum_sq, sums.dot);
     let variance = sii - si * si / n;
     let covariance = sit - si * points.sum / n;
     if variance <= 1e-9 || covariance <= 0.0 {
@@ -242,45 +184,134 @@ fn residual_cost(points: &AlignPoints, window: &GradientWindow, pose: &Pose) -> 
 
 type Matrix5 = [[f64; 5]; 5];
 
-/// `JᵀJ` and `Jᵀr` of the residuals at `pose`.
-#[allow(clippy::needless_range_loop)] // index form mirrors the matrix algebra
+/// `JᵀJ` and `Jᵀr` of the residuals `r = α·I + β − T` at `pose`, `(α, β)` fitted in closed
+/// form first; `None` where the image is flat there.
 fn normal_equations(
     points: &AlignPoints,
     window: &GradientWindow,
     pose: &Pose,
 ) -> Option<(Matrix5, [f64; 5])> {
-    let samples = sample_all(points, window, pose);
-    let (alpha, beta) = photometric_fit(points, &samples)?;
-    let (s, c) = pose.angle_deg.to_radians().sin_cos();
-    let (s, c) = (s as f64, c as f64);
-    let (sx, sy) = (pose.scale_x as f64, pose.scale_y as f64);
+    let map = Affine::of(pose, window.x0, window.y0);
+    let n = points.lanes.len() as f64;
+    let sums = points.lanes.sums_at(&window.image, &map);
+    let (si, sii, sit) = (sums.sum, sums.sum_sq, sums.dot);
+    let variance = sii - si * si / n;
+    if variance <= 1e-9 {
+        return None;
+    }
+    // Gain and offset that best map image values onto template values (on the shifted
+    // values, then the offset moved back by the shift).
+    let alpha = (sit - si * points.sum / n) / variance;
+    let beta = (points.sum - alpha * si) / n - alpha * sums.reference as f64;
+    let moments = jacobian_moments(&points.lanes, window, &map, pose, alpha as f32, beta as f32);
+    // The Jacobian of r is α times the unscaled one of the moments.
     let mut hessian = [[0f64; 5]; 5];
     let mut gradient = [0f64; 5];
-    for ((&(u, v), &(i, gx, gy)), &t) in points.offsets.iter().zip(&samples).zip(&points.values) {
-        let (u, v, gx, gy) = (u as f64, v as f64, gx as f64 * alpha, gy as f64 * alpha);
-        let r = alpha * i as f64 + beta - t as f64;
-        // d(x_img, y_img) / d(θ, sx, sy) for x = x0 + sx·u·c + sy·v·s, y = y0 − sx·u·s + sy·v·c.
-        let dtheta = (-sx * u * s + sy * v * c, -sx * u * c - sy * v * s);
-        let jac = [
-            gx,
-            gy,
-            gx * dtheta.0 + gy * dtheta.1,
-            gx * u * c - gy * u * s,
-            gx * v * s + gy * v * c,
-        ];
-        for a in 0..5 {
-            gradient[a] += jac[a] * r;
-            for b in a..5 {
-                hessian[a][b] += jac[a] * jac[b];
+    for (g, m) in gradient.iter_mut().zip(moments.gradient) {
+        *g = alpha * m as f64;
+    }
+    for ((a, b), m) in UPPER_TRIANGLE.into_iter().zip(moments.hessian) {
+        hessian[a][b] = alpha * alpha * m as f64;
+        hessian[b][a] = hessian[a][b];
+    }
+    Some((hessian, gradient))
+}
+
+/// Σ jjᵀ (upper triangle, row by row) and Σ j·r over the template points, with `j` the
+/// derivative of the image value at a point by `[x, y, θ, sx, sy]` and `r = α·I + β − T`.
+struct JacobianMoments {
+    hessian: [f32; 15],
+    gradient: [f32; 5],
+}
+
+/// The entries `(a, b)`, `a <= b`, of a symmetric 5x5 matrix, row by row.
+const UPPER_TRIANGLE: [(usize, usize); 15] = [
+    (0, 0),
+    (0, 1),
+    (0, 2),
+    (0, 3),
+    (0, 4),
+    (1, 1),
+    (1, 2),
+    (1, 3),
+    (1, 4),
+    (2, 2),
+    (2, 3),
+    (2, 4),
+    (3, 3),
+    (3, 4),
+    (4, 4),
+];
+
+#[multiversion(targets("x86_64+avx512f+avx512vl+avx512bw+avx512dq", "x86_64+avx2+fma"))]
+fn jacobian_moments(
+    lanes: &PointLanes,
+    window: &GradientWindow,
+    map: &Affine,
+    pose: &Pose,
+    alpha: f32,
+    beta: f32,
+) -> JacobianMoments {
+    let (width, height) = (window.image.width, window.image.height);
+    let planes = [&window.image.values[..], &window.gx[..], &window.gy[..]];
+    for plane in planes {
+        assert_eq!(plane.len(), width * height, "window planes match its size");
+    }
+    let (s, c) = pose.angle_deg.to_radians().sin_cos();
+    let (sx, sy) = (pose.scale_x, pose.scale_y);
+    let mut hessian = [[0f32; LANES]; 15];
+    let mut gradient = [[0f32; LANES]; 5];
+    let real = lanes.len();
+    for (chunk, ((u, v), t)) in lanes
+        .us
+        .chunks_exact(LANES)
+        .zip(lanes.vs.chunks_exact(LANES))
+        .zip(lanes.weights.chunks_exact(LANES))
+        .enumerate()
+    {
+        let (mut i, mut gx, mut gy) = ([0f32; LANES], [0f32; LANES], [0f32; LANES]);
+        for lane in 0..LANES {
+            let (x, y) = map.apply(u[lane], v[lane]);
+            let tap = Tap::new(width, height, x, y);
+            // SAFETY: every plane is width x height (asserted above).
+            unsafe {
+                i[lane] = tap.apply(planes[0]);
+                gx[lane] = tap.apply(planes[1]);
+                gy[lane] = tap.apply(planes[2]);
+            }
+        }
+        for lane in 0..LANES {
+            let (u, v) = (u[lane], v[lane]);
+            // The padding (copies of the first point) adds nothing.
+            let weight = if chunk * LANES + lane < real {
+                1.0
+            } else {
+                0.0
+            };
+            let r = (alpha * i[lane] + beta - t[lane]) * weight;
+            let (gx, gy) = (gx[lane] * weight, gy[lane] * weight);
+            // d(x_img, y_img) / d(θ, sx, sy) for x = x0 + sx·u·c + sy·v·s,
+            // y = y0 − sx·u·s + sy·v·c.
+            let dtheta = (-sx * u * s + sy * v * c, -sx * u * c - sy * v * s);
+            let jac = [
+                gx,
+                gy,
+                gx * dtheta.0 + gy * dtheta.1,
+                gx * u * c - gy * u * s,
+                gx * v * s + gy * v * c,
+            ];
+            for (sum, j) in gradient.iter_mut().zip(jac) {
+                sum[lane] += j * r;
+            }
+            for (sum, (a, b)) in hessian.iter_mut().zip(UPPER_TRIANGLE) {
+                sum[lane] += jac[a] * jac[b];
             }
         }
     }
-    for a in 0..5 {
-        for b in 0..a {
-            hessian[a][b] = hessian[b][a];
-        }
+    JacobianMoments {
+        hessian: hessian.map(|lanes| lanes.iter().sum()),
+        gradient: gradient.map(|lanes| lanes.iter().sum()),
     }
-    Some((hessian, gradient))
 }
 
 /// Solves the 5x5 system by Gaussian elimination with partial pivoting.

@@ -31,6 +31,7 @@
 use crate::geometry::{Pose, wrap_angle_deg};
 
 mod align;
+mod correlate;
 mod verify;
 
 pub use verify::{Screened, Verified, Verifier, correlation_length};
@@ -74,8 +75,7 @@ fn grid_points(template: &GrayImage32, max_side: usize) -> (Vec<(f32, f32)>, Vec
 
 /// Template points (offsets from the template centre) with zero-mean, unit-norm values.
 pub(crate) struct TemplatePoints {
-    offsets: Vec<(f32, f32)>,
-    weights: Vec<f32>,
+    lanes: correlate::PointLanes,
 }
 
 impl TemplatePoints {
@@ -88,15 +88,14 @@ impl TemplatePoints {
         if norm > 1e-6 {
             weights.iter_mut().for_each(|w| *w /= norm);
         }
-        Self { offsets, weights }
+        Self {
+            lanes: correlate::PointLanes::new(&offsets, &weights),
+        }
     }
 
     /// Offsets from the template centre and zero-mean, unit-norm weights, point by point.
     pub(crate) fn points(&self) -> impl Iterator<Item = ((f32, f32), f32)> + '_ {
-        self.offsets
-            .iter()
-            .copied()
-            .zip(self.weights.iter().copied())
+        self.lanes.points()
     }
 
     /// The points that measure a pose's final similarity: the whole template (every pixel up to
@@ -107,22 +106,13 @@ impl TemplatePoints {
 
     /// ZNCC of the template against the image under `pose`, in [-1, 1].
     pub(crate) fn score(&self, image: &GrayImage32, pose: &Pose) -> f32 {
-        let (s, c) = pose.angle_deg.to_radians().sin_cos();
-        let (ax, ay) = (pose.scale_x * c, -pose.scale_x * s);
-        let (bx, by) = (pose.scale_y * s, pose.scale_y * c);
-        let sample =
-            |(u, v): (f32, f32)| image.sample(pose.x + ax * u + bx * v, pose.y + ay * u + by * v);
-        // Sums of values relative to the first sample: the variance is a small difference of
-        // large sums otherwise (see [`zncc`]).
-        let reference = self.offsets.first().map_or(0.0, |&p| sample(p));
-        let (mut sum, mut sum_sq, mut dot) = (0f32, 0f32, 0f32);
-        for (&offset, &w) in self.offsets.iter().zip(&self.weights) {
-            let value = sample(offset) - reference;
-            sum += value;
-            sum_sq += value * value;
-            dot += w * value;
-        }
-        zncc(dot, sum, sum_sq, self.offsets.len())
+        let sums = self.lanes.sums(image, pose);
+        zncc(
+            sums.dot as f32,
+            sums.sum as f32,
+            sums.sum_sq as f32,
+            self.lanes.len(),
+        )
     }
 }
 

@@ -47,6 +47,14 @@ const LEVEL_SIGMA: f32 = 1.0;
 /// 64 ms, the best 5 79.0 %.
 const SCREEN_ANGLES_KEPT: usize = 3;
 
+/// Screening levels up to this many pixels are blurred once for every candidate's alignment
+/// instead of once per candidate (a 224 pair's level: 12 544 pixels, against a window of
+/// about 4 000 per candidate and a hundred candidates; the 2048 frame's level, 1024x1024:
+/// 12 MB for the level and its gradients, 2048 frame of `cargo bench --bench frames` 1923 →
+/// 1873 ms together with the vector sampling). Larger levels keep per-candidate windows,
+/// which bound the memory.
+const WHOLE_LEVEL_PIXELS: usize = 1 << 20;
+
 /// Gauss–Newton iterations of the screening level's alignment.
 const LEVEL_ITERATIONS: usize = 10;
 
@@ -134,6 +142,9 @@ pub struct Verifier<'a> {
     level_grid: AngleScaleGrid,
     /// The level template's points for the level alignment (blurred like its window).
     level_align: align::AlignPoints,
+    /// The blurred level with its gradients, where it is small enough to keep
+    /// ([`WHOLE_LEVEL_PIXELS`]).
+    level_gradients: Option<align::GradientWindow>,
     /// Full-resolution points of the fine search.
     sparse: TemplatePoints,
     /// Every template pixel: the similarity.
@@ -192,6 +203,8 @@ impl<'a> Verifier<'a> {
                 level_template.width.min(level_template.height) as f32,
                 level_template.width.max(level_template.height) as f32,
             ),
+            level_gradients: (level_image.width * level_image.height <= WHOLE_LEVEL_PIXELS)
+                .then(|| align::GradientWindow::whole(&level_image, LEVEL_SIGMA)),
             level_image,
             level_grid,
             sparse: TemplatePoints::new(template, 20),
@@ -254,17 +267,24 @@ impl<'a> Verifier<'a> {
             .map(|w| w.pose.scale_x.max(w.pose.scale_y))
             .fold(0.0f32, f32::max);
         let reach = long * largest_scale * 0.75 + 4.0;
-        let window = align::GradientWindow::new(
-            &self.level_image,
-            on_level.x,
-            on_level.y,
-            reach + 3.0 * LEVEL_SIGMA,
-            LEVEL_SIGMA,
-        );
+        let own_window;
+        let window = match &self.level_gradients {
+            Some(whole) => whole,
+            None => {
+                own_window = align::GradientWindow::new(
+                    &self.level_image,
+                    on_level.x,
+                    on_level.y,
+                    reach + 3.0 * LEVEL_SIGMA,
+                    LEVEL_SIGMA,
+                );
+                &own_window
+            }
+        };
         // Aligned from each window's best: the grid scores angles at the candidate's centre,
         // and with that centre a few pixels off a wrong angle can outscore the right one.
         for start in &windows {
-            let aligned = align::align(&self.level_align, &window, &start.pose, LEVEL_ITERATIONS);
+            let aligned = align::align(&self.level_align, window, &start.pose, LEVEL_ITERATIONS);
             let moved = (aligned.x - on_level.x).hypot(aligned.y - on_level.y);
             let score = self.level_points.score(&self.level_image, &aligned);
             if score > best.score
