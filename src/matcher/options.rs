@@ -153,7 +153,7 @@ pub const DEFAULT_MIN_SCORE: f32 = 0.9;
 pub const NETWORK_MIN_SCORE: f32 = 0.5;
 
 /// Default `candidate_threshold` (heatmap value; README "Verified candidates").
-pub const DEFAULT_CANDIDATE_THRESHOLD: f32 = 1e-4;
+pub const DEFAULT_CANDIDATE_THRESHOLD: f32 = 1e-5;
 
 /// Fewest candidates verified per search by default: a weakly trained network's object is often
 /// among its first few dozen peaks, not first (README "Verified candidates").
