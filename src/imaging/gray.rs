@@ -76,7 +76,7 @@ pub struct BilinearTap {
 }
 
 impl BilinearTap {
-    #[inline]
+    #[inline(always)]
     pub fn new(width: usize, height: usize, x: f32, y: f32) -> Self {
         let x = x.clamp(0.0, (width - 1) as f32);
         let y = y.clamp(0.0, (height - 1) as f32);
@@ -100,6 +100,28 @@ impl BilinearTap {
         let [a, b, c, d] = self.corners;
         let top = plane[a] + (plane[b] - plane[a]) * self.fx;
         let bottom = plane[c] + (plane[d] - plane[c]) * self.fx;
+        top + (bottom - top) * self.fy
+    }
+
+    /// [`BilinearTap::apply`] without bounds checks, for vector loops (gathers).
+    ///
+    /// # Safety
+    /// `plane.len()` is the `width * height` the tap was made for (its corners lie inside:
+    /// `new` clamps the coordinates, and a NaN coordinate converts to 0).
+    #[inline(always)]
+    pub unsafe fn apply_unchecked(&self, plane: &[f32]) -> f32 {
+        let [a, b, c, d] = self.corners;
+        // SAFETY: every corner is below width * height = plane.len() (the caller's guarantee).
+        let (a, b, c, d) = unsafe {
+            (
+                *plane.get_unchecked(a),
+                *plane.get_unchecked(b),
+                *plane.get_unchecked(c),
+                *plane.get_unchecked(d),
+            )
+        };
+        let top = a + (b - a) * self.fx;
+        let bottom = c + (d - c) * self.fx;
         top + (bottom - top) * self.fy
     }
 }

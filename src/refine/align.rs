@@ -15,9 +15,9 @@
 
 use multiversion::multiversion;
 
-use super::correlate::{Affine, LANES, PointLanes, Tap};
+use super::correlate::{Affine, LANES, PointLanes};
 use crate::geometry::Pose;
-use crate::imaging::{GrayImage32, gaussian_blur, gradients};
+use crate::imaging::{BilinearTap, GrayImage32, gaussian_blur, gradients};
 
 /// A blurred window of the search image with its gradients, in window coordinates.
 pub(super) struct GradientWindow {
@@ -272,12 +272,12 @@ fn jacobian_moments(
         let (mut i, mut gx, mut gy) = ([0f32; LANES], [0f32; LANES], [0f32; LANES]);
         for lane in 0..LANES {
             let (x, y) = map.apply(u[lane], v[lane]);
-            let tap = Tap::new(width, height, x, y);
+            let tap = BilinearTap::new(width, height, x, y);
             // SAFETY: every plane is width x height (asserted above).
             unsafe {
-                i[lane] = tap.apply(planes[0]);
-                gx[lane] = tap.apply(planes[1]);
-                gy[lane] = tap.apply(planes[2]);
+                i[lane] = tap.apply_unchecked(planes[0]);
+                gx[lane] = tap.apply_unchecked(planes[1]);
+                gy[lane] = tap.apply_unchecked(planes[2]);
             }
         }
         for lane in 0..LANES {

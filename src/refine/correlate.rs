@@ -9,7 +9,7 @@
 use multiversion::multiversion;
 
 use crate::geometry::Pose;
-use crate::imaging::GrayImage32;
+use crate::imaging::{BilinearTap, GrayImage32};
 
 /// Points per vector: sixteen f32 on AVX-512.
 pub(super) const LANES: usize = 16;
@@ -127,66 +127,13 @@ impl Affine {
     }
 }
 
-/// Where a bilinear sample reads in a `width x height` plane and with what weights, the
-/// coordinates clamped to the plane, exactly as [`crate::imaging::BilinearTap`] computes it;
-/// written for vector loops (32-bit indices, no bounds checks).
-#[derive(Clone, Copy)]
-pub(super) struct Tap {
-    row0: usize,
-    row1: usize,
-    x0: usize,
-    x1: usize,
-    fx: f32,
-    fy: f32,
-}
-
-impl Tap {
-    #[inline(always)]
-    pub(super) fn new(width: usize, height: usize, x: f32, y: f32) -> Self {
-        let x = x.clamp(0.0, (width - 1) as f32);
-        let y = y.clamp(0.0, (height - 1) as f32);
-        let (x0, y0) = (x as u32, y as u32);
-        let x1 = (x0 + 1).min(width as u32 - 1);
-        let y1 = (y0 + 1).min(height as u32 - 1);
-        Self {
-            row0: y0 as usize * width,
-            row1: y1 as usize * width,
-            x0: x0 as usize,
-            x1: x1 as usize,
-            fx: x - x0 as f32,
-            fy: y - y0 as f32,
-        }
-    }
-
-    /// The sample of `plane`.
-    ///
-    /// # Safety
-    /// `plane.len() == width * height` of the tap.
-    #[inline(always)]
-    pub(super) unsafe fn apply(&self, plane: &[f32]) -> f32 {
-        // SAFETY: x0, x1 < width and the rows start below height·width (clamped in `new`; a
-        // NaN coordinate converts to 0), and the caller guarantees the plane's size.
-        let (a, b, c, d) = unsafe {
-            (
-                *plane.get_unchecked(self.row0 + self.x0),
-                *plane.get_unchecked(self.row0 + self.x1),
-                *plane.get_unchecked(self.row1 + self.x0),
-                *plane.get_unchecked(self.row1 + self.x1),
-            )
-        };
-        let top = a + (b - a) * self.fx;
-        let bottom = c + (d - c) * self.fx;
-        top + (bottom - top) * self.fy
-    }
-}
-
 #[multiversion(targets("x86_64+avx512f+avx512vl+avx512bw+avx512dq", "x86_64+avx2+fma"))]
 fn lane_sums(us: &[f32], vs: &[f32], weights: &[f32], image: &GrayImage32, map: &Affine) -> Sums {
     let (values, width, height) = (&image.values[..], image.width, image.height);
     let at = |u: f32, v: f32| {
         let (x, y) = map.apply(u, v);
         // SAFETY: the caller checked `values.len() == width * height`.
-        unsafe { Tap::new(width, height, x, y).apply(values) }
+        unsafe { BilinearTap::new(width, height, x, y).apply_unchecked(values) }
     };
     let reference = at(us[0], vs[0]);
     let mut sum = [0f64; LANES];
