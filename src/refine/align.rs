@@ -85,9 +85,21 @@ pub(super) struct AlignPoints {
 }
 
 impl AlignPoints {
-    /// Every `stride`-th pixel of `template` blurred by `sigma` template pixels.
-    pub(super) fn new(template: &GrayImage32, sigma: f32, max_side: usize) -> Self {
-        let (offsets, values) = super::grid_points(&gaussian_blur(template, sigma), max_side);
+    /// Every `stride`-th pixel of `template` blurred by `sigma` template pixels; with
+    /// `whole_lanes`, without the farthest few that would start a last lane
+    /// ([`super::in_whole_lanes`]).
+    pub(super) fn new(
+        template: &GrayImage32,
+        sigma: f32,
+        max_side: usize,
+        whole_lanes: bool,
+    ) -> Self {
+        let points = super::grid_points(&gaussian_blur(template, sigma), max_side);
+        let (offsets, values) = if whole_lanes {
+            super::in_whole_lanes(points)
+        } else {
+            points
+        };
         let sum: f64 = values.iter().map(|&t| t as f64).sum();
         let mean = sum / values.len().max(1) as f64;
         let spread = values.iter().map(|&t| (t as f64 - mean).powi(2)).sum();

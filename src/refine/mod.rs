@@ -73,6 +73,28 @@ fn grid_points(template: &GrayImage32, max_side: usize) -> (Vec<(f32, f32)>, Vec
     (offsets, values)
 }
 
+/// `(offsets, values)` without the few points farthest from the template centre that would
+/// start a last, mostly empty lane of [`correlate::LANES`] (at most a quarter of a lane): the
+/// sampling costs the same per lane however many of its points are real, and the screen
+/// samples every candidate a few hundred times (9x9 level points: 81 → 80, six lanes → five).
+/// The farthest points go because a small angle error moves them most.
+fn in_whole_lanes((offsets, values): (Vec<(f32, f32)>, Vec<f32>)) -> (Vec<(f32, f32)>, Vec<f32>) {
+    let lanes = correlate::LANES;
+    let extra = offsets.len() % lanes;
+    if offsets.len() < lanes || extra == 0 || extra > lanes / 4 {
+        return (offsets, values);
+    }
+    let mut order: Vec<usize> = (0..offsets.len()).collect();
+    let distance = |i: usize| offsets[i].0.hypot(offsets[i].1);
+    order.sort_by(|&a, &b| distance(a).total_cmp(&distance(b)));
+    let mut kept = order[..offsets.len() - extra].to_vec();
+    kept.sort_unstable();
+    (
+        kept.iter().map(|&i| offsets[i]).collect(),
+        kept.iter().map(|&i| values[i]).collect(),
+    )
+}
+
 /// Template points (offsets from the template centre) with zero-mean, unit-norm values.
 pub(crate) struct TemplatePoints {
     lanes: correlate::PointLanes,
@@ -81,7 +103,15 @@ pub(crate) struct TemplatePoints {
 impl TemplatePoints {
     /// Every `stride`-th template pixel (at most ~`max_side` per side).
     pub(crate) fn new(template: &GrayImage32, max_side: usize) -> Self {
-        let (offsets, values) = grid_points(template, max_side);
+        Self::from_points(grid_points(template, max_side))
+    }
+
+    /// [`TemplatePoints::new`] in whole lanes ([`in_whole_lanes`]): the screen's points.
+    pub(crate) fn in_whole_lanes(template: &GrayImage32, max_side: usize) -> Self {
+        Self::from_points(in_whole_lanes(grid_points(template, max_side)))
+    }
+
+    fn from_points((offsets, values): (Vec<(f32, f32)>, Vec<f32>)) -> Self {
         let mean = values.iter().sum::<f32>() / values.len() as f32;
         let mut weights: Vec<f32> = values.iter().map(|v| v - mean).collect();
         let norm = weights.iter().map(|w| w * w).sum::<f32>().sqrt();
@@ -155,6 +185,11 @@ struct AngleScaleGrid {
     /// `Some(n)`: score every angle at the start's scales first and try the scale factors
     /// only at the `n` best angles (the screen's shortcut); `None`: every angle x scales.
     angles_first: Option<usize>,
+    /// Near the start, score the isotropic scale pairs (`f·sx, f·sy` for each near factor `f`)
+    /// first and then only the 3x3 pairs one factor step around the best of them (13 pairs
+    /// instead of 25; the screen's shortcut: README "Verified candidates"); otherwise every
+    /// pair of near factors.
+    isotropic_first: bool,
     /// Search near the start's mirrored angle (`-angle`) too, as a second start: the network
     /// reads an angle as `±acos(cos)` with the sign from its sign map, and the sign is the
     /// head it gets wrong most (README "Verified candidates").
@@ -196,6 +231,7 @@ impl AngleScaleGrid {
             far_step_deg: 6.0,
             far_factors: (0..3).map(|k| 0.85f32 * 1.18f32.powi(k)).collect(),
             angles_first: None,
+            isotropic_first: false,
             mirrored_start: false,
         }
     }
@@ -235,7 +271,10 @@ impl AngleScaleGrid {
                 f32::NEG_INFINITY
             },
         };
-        let best_of = |offsets: &mut dyn Iterator<Item = f32>, factors: &[f32]| -> Scored {
+        let best_of = |offsets: &mut dyn Iterator<Item = f32>,
+                       factors: &[f32],
+                       isotropic_first: bool|
+         -> Scored {
             let mut best = Scored {
                 pose: *start,
                 score: f32::NEG_INFINITY,
@@ -248,18 +287,39 @@ impl AngleScaleGrid {
                 Some(keep) => best_angles(points, image, start, angles, keep),
                 None => angles,
             };
+            let mut try_pose = |angle_deg: f32, factor_x: f32, factor_y: f32| -> f32 {
+                let pose = Pose {
+                    angle_deg,
+                    scale_x: start.scale_x * factor_x,
+                    scale_y: start.scale_y * factor_y,
+                    ..*start
+                };
+                let score = points.score(image, &pose);
+                if score > best.score {
+                    best = Scored { pose, score };
+                }
+                score
+            };
             for angle_deg in angles {
-                for &factor_x in factors {
-                    for &factor_y in factors {
-                        let pose = Pose {
-                            angle_deg,
-                            scale_x: start.scale_x * factor_x,
-                            scale_y: start.scale_y * factor_y,
-                            ..*start
-                        };
-                        let score = points.score(image, &pose);
-                        if score > best.score {
-                            best = Scored { pose, score };
+                if isotropic_first && factors.len() > 1 {
+                    let step = factors[1] / factors[0];
+                    let mut isotropic = (f32::NEG_INFINITY, 1.0f32);
+                    for &factor in factors {
+                        let score = try_pose(angle_deg, factor, factor);
+                        if score > isotropic.0 {
+                            isotropic = (score, factor);
+                        }
+                    }
+                    let factor = isotropic.1;
+                    for (kx, ky) in (-1..=1).flat_map(|kx| (-1..=1).map(move |ky| (kx, ky))) {
+                        if (kx, ky) != (0, 0) {
+                            try_pose(angle_deg, factor * step.powi(kx), factor * step.powi(ky));
+                        }
+                    }
+                } else {
+                    for &factor_x in factors {
+                        for &factor_y in factors {
+                            try_pose(angle_deg, factor_x, factor_y);
                         }
                     }
                 }
@@ -270,6 +330,7 @@ impl AngleScaleGrid {
         let own = best_of(
             &mut (-near..=near).map(|k| k as f32 * self.near_step_deg),
             &self.near_factors,
+            self.isotropic_first,
         );
         let mut windows = vec![if own.score > at_start.score {
             own
@@ -284,6 +345,7 @@ impl AngleScaleGrid {
                     .map(|k| -2.0 * start.angle_deg + k as f32 * self.near_step_deg)
                     .filter(|&offset| wrap_angle_deg(offset).abs() > 30.0),
                 &self.near_factors,
+                self.isotropic_first,
             );
             windows.push(mirrored);
         }
@@ -293,6 +355,7 @@ impl AngleScaleGrid {
             windows.push(best_of(
                 &mut (first..=last).map(|k| k as f32 * self.far_step_deg),
                 &self.far_factors,
+                false,
             ));
         }
         windows.retain(|w| w.score > f32::NEG_INFINITY);
@@ -378,7 +441,7 @@ fn align_from(
                 40
             };
             (
-                align::AlignPoints::new(template, sigma / mean_scale, max_side),
+                align::AlignPoints::new(template, sigma / mean_scale, max_side, false),
                 align::GradientWindow::new(image, around.x, around.y, radius + 3.0 * sigma, sigma),
             )
         })
