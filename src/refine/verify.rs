@@ -320,12 +320,14 @@ impl<'a> Verifier<'a> {
     }
 
     /// Refines a screened candidate at full resolution and measures the similarity there. The
-    /// alignment may move the centre by at most a third of the object (otherwise it found a
-    /// neighbour, which has its own candidate); it is kept only if it is more similar. Both
-    /// poses are held to the caller's scale range: where the template fits along a direction
-    /// in which it looks the same (stripes, a plain band), a smaller scale fits as well as
-    /// the object's own and the search drifts below the range; the object is still there, at
-    /// the range's bound.
+    /// alignment may move the centre by at most a third of the object from where the screen
+    /// left it (otherwise it found a neighbour, which has its own candidate; measured from the
+    /// network's candidate instead, a screen that had already moved nearly that far left the
+    /// alignment no room, and the coarser fine-search pose was kept); it is kept only if it is
+    /// more similar. Both poses are held to the caller's scale range: where the template fits
+    /// along a direction in which it looks the same (stripes, a plain band), a smaller scale
+    /// fits as well as the object's own and the search drifts below the range; the object is
+    /// still there, at the range's bound.
     pub fn confirm(&self, screened: &Screened, candidate: &Pose) -> Verified {
         let start = Scored {
             pose: screened.pose,
@@ -346,7 +348,7 @@ impl<'a> Verifier<'a> {
         };
         let keep_aligned = aligned.score > fine_similarity
             && self.plausible(&aligned.pose)
-            && stayed_near(self.template, candidate, &aligned.pose)
+            && stayed_near(self.template, &screened.pose, &aligned.pose)
             && (self.allowed)(wrap_angle_deg(aligned.pose.angle_deg));
         let (pose, similarity) = if keep_aligned {
             (aligned.pose, aligned.score)
