@@ -139,6 +139,7 @@ pub fn run(args: EvalArgs) -> Result<(), CliError> {
         candidate_threshold: args.verification.candidate_threshold,
         max_candidates: args.verification.max_candidates,
         method: args.method,
+        classical_fallback: !args.verification.no_classical_fallback,
         ..MatchOptions::default()
     }
     .validate()

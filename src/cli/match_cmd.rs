@@ -94,6 +94,7 @@ impl MatchArgs {
             scale_range: self.scale_range,
             refine: !self.no_refine,
             method: self.method,
+            classical_fallback: !self.verification.no_classical_fallback,
         }
         .validate()
         .map_err(CliError::Usage)

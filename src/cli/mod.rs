@@ -88,6 +88,11 @@ pub struct VerificationArgs {
     /// per --max-instances, at least 100).
     #[arg(long, default_value_t = 0)]
     pub max_candidates: usize,
+    /// Do not search the image classically (at the template's expected scale) when none of
+    /// the network's candidates verifies at --min-score; by default that search runs where it
+    /// costs less than about 60 ms (e.g. up to about 350x350 pixels for a 36x36 template).
+    #[arg(long)]
+    pub no_classical_fallback: bool,
 }
 
 /// Model flags shared by every subcommand that runs the network.

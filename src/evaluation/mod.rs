@@ -8,7 +8,7 @@ use serde::Serialize;
 
 use crate::geometry::{Pose, angle_distance_deg, rotated_iou};
 use crate::imaging::GrayImage32;
-use crate::matcher::candidates::{answer, select};
+use crate::matcher::candidates::{answer, select, with_classical_fallback};
 use crate::matcher::{MatchError, MatchJob, MatchOptions, Matcher, Proposal, ValidOptions};
 use crate::refine::refine_pose;
 use crate::synth::SyntheticPair;
@@ -146,8 +146,11 @@ pub fn match_pair(
         });
     }
     let start = Instant::now();
+    // Every answer whatever its score (for the calibration table); the classical fallback
+    // runs below, when none reaches the caller's `min_score`, as in `answer`.
     let verified_options = ValidOptions::derived(MatchOptions {
         min_score: Some(f32::MIN_POSITIVE),
+        classical_fallback: false,
         ..(**options).clone()
     });
     let candidates = proposal
@@ -167,6 +170,16 @@ pub fn match_pair(
         },
     )
     .poses;
+    let (verified, _) = with_classical_fallback(
+        &encoded.gray,
+        &image,
+        verified,
+        &MatchOptions {
+            classical_fallback: options.classical_fallback,
+            ..(*verified_options).clone()
+        },
+        options.effective_min_score(),
+    );
     Ok(PairRun {
         network,
         network_ms,

@@ -187,6 +187,7 @@ pub fn options_from_proto(
         angle_range,
         scale_range,
         refine: !o.no_refine,
+        classical_fallback: defaults.classical_fallback && !o.no_classical_fallback,
         method: match proto::Method::try_from(o.method) {
             Ok(proto::Method::Unspecified | proto::Method::Tdcm) => Method::Tdcm,
             Ok(proto::Method::Ncc) => Method::Ncc,

@@ -69,6 +69,10 @@ pub struct Settings {
     pub min_score: Option<f32>,
     pub candidate_threshold: f32,
     pub max_candidates: usize,
+    /// Whether the network path searches classically at the template's scale when none of
+    /// the network's candidates verifies (small searches only; a request's
+    /// `no_classical_fallback` switches it off for that request).
+    pub classical_fallback: bool,
     /// PEM certificate chain and private key: with both, the service speaks TLS only.
     pub tls_cert: PathBuf,
     pub tls_key: PathBuf,
@@ -188,6 +192,7 @@ impl Settings {
             min_score: self.min_score,
             candidate_threshold: self.candidate_threshold,
             max_candidates: self.max_candidates,
+            classical_fallback: self.classical_fallback,
             ..MatchOptions::default()
         }
     }

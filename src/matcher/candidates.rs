@@ -5,6 +5,11 @@
 //! filters on the refined poses → rotated-box NMS on the refined poses (candidates that refine
 //! onto the same object collapse) → `min_score` → `max_instances`, best first.
 //!
+//! When no answer reaches `min_score`, the classical matcher searches the image at the
+//! template's expected scale ([`with_classical_fallback`]): the network misses some templates
+//! entirely (a texture of pixel noise has no peak near the object among its first hundred),
+//! and a small search costs less than the network itself.
+//!
 //! Without refinement ([`MatchOptions::refine`] off) the network's poses go straight to the
 //! filters, NMS and `min_score` on the heatmap value.
 
@@ -13,7 +18,7 @@ use std::time::Instant;
 use rayon::prelude::*;
 
 use super::options::MatchOptions;
-use super::{MatchJob, MatchOutcome, Proposal};
+use super::{MatchJob, MatchOutcome, Proposal, ncc};
 use crate::geometry::{Pose, rotated_iou};
 use crate::imaging::GrayImage32;
 use crate::refine::{Screened, Verifier};
@@ -43,7 +48,7 @@ pub fn answer(job: &MatchJob, proposal: Proposal) -> MatchOutcome {
     let size = (job.template.width as f32, job.template.height as f32);
     let mut timings = proposal.timings;
     let start = Instant::now();
-    let poses = if job.options.refine && !proposal.candidates.is_empty() {
+    let poses = if job.options.refine {
         let image = GrayImage32::from_rgb(job.image);
         let verified = verify_candidates(
             &job.template.gray,
@@ -54,7 +59,15 @@ pub fn answer(job: &MatchJob, proposal: Proposal) -> MatchOutcome {
         );
         timings.refine_ms = verified.confirm_ms;
         timings.screen_ms = start.elapsed().as_secs_f64() * 1e3 - verified.confirm_ms;
-        verified.poses
+        let (poses, fallback_ms) = with_classical_fallback(
+            &job.template.gray,
+            &image,
+            verified.poses,
+            job.options,
+            job.options.effective_min_score(),
+        );
+        timings.fallback_ms = fallback_ms;
+        poses
     } else {
         let poses = select(proposal.candidates, job.options, size.0, size.1);
         timings.peaks_ms += start.elapsed().as_secs_f64() * 1e3;
@@ -79,6 +92,13 @@ pub fn verify_candidates(
     candidates: Vec<Pose>,
     options: &MatchOptions,
 ) -> Verification {
+    if candidates.is_empty() {
+        return Verification {
+            poses: Vec::new(),
+            screen_ms: 0.0,
+            confirm_ms: 0.0,
+        };
+    }
     let start = Instant::now();
     let scales = options.scale_range.map(|r| (r.min, r.max));
     let angle_range = options.angle_range;
@@ -133,6 +153,29 @@ pub fn verify_candidates(
         screen_ms,
         confirm_ms: start.elapsed().as_secs_f64() * 1e3,
     }
+}
+
+/// `answers` and, when none of them reaches `trigger_score` (the caller's `min_score`) and
+/// `options` ask for it, the classical fallback's ([`ncc::fallback_match`]; `network_score`
+/// 0), selected together under `options`; with the milliseconds the fallback took (0 when it
+/// did not run).
+pub fn with_classical_fallback(
+    template: &GrayImage32,
+    image: &GrayImage32,
+    answers: Vec<Pose>,
+    options: &MatchOptions,
+    trigger_score: f32,
+) -> (Vec<Pose>, f64) {
+    if !options.classical_fallback || answers.iter().any(|p| p.score >= trigger_score) {
+        return (answers, 0.0);
+    }
+    let start = Instant::now();
+    let mut poses = answers;
+    if let Some(found) = ncc::fallback_match(template, image, options) {
+        poses.extend(found);
+        poses = select(poses, options, template.width as f32, template.height as f32);
+    }
+    (poses, start.elapsed().as_secs_f64() * 1e3)
 }
 
 /// Range filters, rotated-box non-maximum suppression, `min_score`, best first, at most

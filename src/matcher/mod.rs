@@ -105,12 +105,14 @@ pub struct MatchTimings {
     pub screen_ms: f64,
     /// Refining and scoring the candidates that survived the screen.
     pub refine_ms: f64,
+    /// The classical fallback (0 when it did not run; [`MatchOptions::classical_fallback`]).
+    pub fallback_ms: f64,
 }
 
 impl MatchTimings {
-    /// Everything after the network: peaks, screening and refinement.
+    /// Everything after the network: peaks, screening, refinement and the classical fallback.
     pub fn postprocess_ms(&self) -> f64 {
-        self.peaks_ms + self.screen_ms + self.refine_ms
+        self.peaks_ms + self.screen_ms + self.refine_ms + self.fallback_ms
     }
 }
 

@@ -152,6 +152,48 @@ pub fn ncc_match(template: &GrayImage32, image: &GrayImage32, options: &MatchOpt
         image.height,
         options,
     );
+    search(template, image, options, plan, u64::MAX).expect("no limit on the work")
+}
+
+/// Most template-point samples (positions x angles x scale pairs x points, coarse level) that
+/// the network path's classical fallback ([`fallback_match`]) may cost: about 60 ms on the
+/// two-core target machine. A 224x224 image with a 36x36 template costs 62 million (138 million
+/// for a fine texture, which scores every pixel); a 640x480 image about 370 million, so larger
+/// searches (or a region of interest beyond about 350x350) rely on the network alone.
+pub const FALLBACK_MAX_POINT_SAMPLES: u64 = 300_000_000;
+
+/// The classical search as the network path's fallback, for when none of the network's
+/// candidates verifies (README "Verified candidates"): every angle of the caller's range, but
+/// only the template's expected scale (the geometric middle of the caller's scale range, 1
+/// without one), so that its cost stays near the network's; confirmation's fine search and
+/// alignment then find the object's own scale, and the poses are held to the caller's range as
+/// the network's are. `None` (not searched) when even that would cost more than
+/// [`FALLBACK_MAX_POINT_SAMPLES`]. Its answers have `network_score` 0.
+pub fn fallback_match(
+    template: &GrayImage32,
+    image: &GrayImage32,
+    options: &MatchOptions,
+) -> Option<Vec<Pose>> {
+    let mut plan = SearchPlan::new(
+        template.width,
+        template.height,
+        image.width,
+        image.height,
+        options,
+    );
+    plan.scales = vec![options.scale_range.map_or(1.0, |r| (r.min * r.max).sqrt())];
+    search(template, image, options, plan, FALLBACK_MAX_POINT_SAMPLES)
+}
+
+/// The coarse search of `plan` and the confirmation of its best distinct peaks; `None` when
+/// its template-point samples would exceed `max_point_samples`.
+fn search(
+    template: &GrayImage32,
+    image: &GrayImage32,
+    options: &MatchOptions,
+    plan: SearchPlan,
+    max_point_samples: u64,
+) -> Option<Vec<Pose>> {
     let mut level_template = template.clone();
     let mut level_image = image.clone();
     for _ in 0..plan.levels {
@@ -162,7 +204,10 @@ pub fn ncc_match(template: &GrayImage32, image: &GrayImage32, options: &MatchOpt
     let level_image = gaussian_blur(&level_image, COARSE_SIGMA);
     let factor = plan.factor;
     let points = coarse_points(&level_template);
-    let hi = options.scale_range.map_or(1.0, |r| r.max);
+    if plan.scorings().saturating_mul(points.points().count() as u64) > max_point_samples {
+        return None;
+    }
+    let hi = plan.scales.iter().copied().fold(1.0f32, f32::max);
     let (scales, angles) = (&plan.scales, &plan.angles);
     // Best score per coarse position, with the pose that gave it.
     let (gw, gh) = plan.grid;
@@ -288,12 +333,12 @@ pub fn ncc_match(template: &GrayImage32, image: &GrayImage32, options: &MatchOpt
             }
         })
         .collect();
-    select(
+    Some(select(
         poses,
         options,
         template.width as f32,
         template.height as f32,
-    )
+    ))
 }
 
 /// The coarse level with its border replicated far enough that every template point of every

@@ -136,6 +136,11 @@ pub struct MatchOptions {
     pub refine: bool,
     /// The network, or the classical NCC matcher.
     pub method: Method,
+    /// With verification: when no candidate of the network verifies at `min_score`, search the
+    /// image with the classical matcher at the template's expected scale
+    /// ([`super::ncc::fallback_match`]; small searches only). Off: the network's candidates
+    /// alone (a frame without the part costs no more than one with it).
+    pub classical_fallback: bool,
 }
 
 /// Upper bound on `max_instances`: beyond this a request is almost certainly a mistake.
@@ -171,6 +176,7 @@ impl Default for MatchOptions {
             scale_range: None,
             refine: true,
             method: Method::Tdcm,
+            classical_fallback: true,
         }
     }
 }
