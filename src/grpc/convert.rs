@@ -427,6 +427,26 @@ mod tests {
     }
 
     #[test]
+    fn the_classical_fallback_is_on_unless_the_request_or_the_server_switches_it_off() {
+        let fallback = |no_classical_fallback: bool, server: bool| {
+            let defaults = MatchOptions {
+                classical_fallback: server,
+                ..MatchOptions::default()
+            };
+            let request = proto::MatchOptions {
+                no_classical_fallback,
+                ..Default::default()
+            };
+            let (options, _) = options_from_proto(Some(request), &defaults).unwrap();
+            options.classical_fallback
+        };
+        assert!(fallback(false, true));
+        assert!(!fallback(true, true));
+        assert!(!fallback(false, false));
+        assert!(!fallback(true, false));
+    }
+
+    #[test]
     fn grpc_timeout_header_becomes_a_deadline() {
         let now = Instant::now();
         let mut md = tonic::metadata::MetadataMap::new();

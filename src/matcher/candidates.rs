@@ -173,7 +173,12 @@ pub fn with_classical_fallback(
     let mut poses = answers;
     if let Some(found) = ncc::fallback_match(template, image, options) {
         poses.extend(found);
-        poses = select(poses, options, template.width as f32, template.height as f32);
+        poses = select(
+            poses,
+            options,
+            template.width as f32,
+            template.height as f32,
+        );
     }
     (poses, start.elapsed().as_secs_f64() * 1e3)
 }
@@ -411,6 +416,57 @@ mod tests {
         assert_eq!(kept.poses.len(), 1, "{:?}", kept.poses);
         assert!(kept.poses[0].score >= threshold);
         assert_is_truth(&kept.poses[0], &truth);
+    }
+
+    #[test]
+    fn when_no_candidate_verifies_the_classical_fallback_searches_the_image() {
+        let (image, template, truth) = scene();
+        let options = MatchOptions {
+            max_instances: 1,
+            ..MatchOptions::default()
+        };
+        let min_score = options.effective_min_score();
+        // Only decoys: nothing verifies at min_score.
+        let verified = verify_candidates(&template, (36.0, 36.0), &image, decoys(), &options);
+        assert!(verified.poses.is_empty(), "{:?}", verified.poses);
+        let (found, fallback_ms) =
+            with_classical_fallback(&template, &image, verified.poses, &options, min_score);
+        assert_eq!(found.len(), 1, "{found:?}");
+        assert_is_truth(&found[0], &truth);
+        assert!(
+            found[0].score >= min_score && fallback_ms > 0.0,
+            "{found:?}"
+        );
+        // Its answers came from no network peak.
+        assert_eq!(found[0].network_score, 0.0);
+
+        // Switched off, nothing is searched.
+        let off = MatchOptions {
+            classical_fallback: false,
+            ..options.clone()
+        };
+        let (none, fallback_ms) =
+            with_classical_fallback(&template, &image, vec![], &off, min_score);
+        assert!(none.is_empty() && fallback_ms == 0.0);
+
+        // An answer at min_score already: the network's answers stand as they are.
+        let answer = pose(60.0, 60.0, 0.0, 1.0, 0.9);
+        let answer = Pose {
+            score: min_score,
+            ..answer
+        };
+        let (kept, fallback_ms) =
+            with_classical_fallback(&template, &image, vec![answer], &options, min_score);
+        assert_eq!(kept, vec![answer]);
+        assert_eq!(fallback_ms, 0.0);
+    }
+
+    #[test]
+    fn the_classical_fallback_does_not_search_large_images() {
+        let (_, template, _) = scene();
+        let large = texture(800, 800, 3);
+        let options = MatchOptions::default();
+        assert!(ncc::fallback_match(&template, &large, &options).is_none());
     }
 
     /// The network reads an angle as `±acos(cos)` with the sign from its sign map; on the

@@ -195,18 +195,24 @@ fn search(
     max_point_samples: u64,
 ) -> Option<Vec<Pose>> {
     let mut level_template = template.clone();
-    let mut level_image = image.clone();
     for _ in 0..plan.levels {
         level_template = level_template.downsample();
-        level_image = level_image.downsample();
     }
     let level_template = gaussian_blur(&level_template, COARSE_SIGMA);
-    let level_image = gaussian_blur(&level_image, COARSE_SIGMA);
-    let factor = plan.factor;
     let points = coarse_points(&level_template);
-    if plan.scorings().saturating_mul(points.points().count() as u64) > max_point_samples {
+    if plan
+        .scorings()
+        .saturating_mul(points.points().count() as u64)
+        > max_point_samples
+    {
         return None;
     }
+    let mut level_image = image.clone();
+    for _ in 0..plan.levels {
+        level_image = level_image.downsample();
+    }
+    let level_image = gaussian_blur(&level_image, COARSE_SIGMA);
+    let factor = plan.factor;
     let hi = plan.scales.iter().copied().fold(1.0f32, f32::max);
     let (scales, angles) = (&plan.scales, &plan.angles);
     // Best score per coarse position, with the pose that gave it.
