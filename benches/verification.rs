@@ -3,8 +3,8 @@
 //! verification), and the verified default path (`max_instances` 1), on the same generated
 //! pairs, for the embedded default weights and, when `../shared/reference` is present, the
 //! authors' checkpoint, in the default arithmetic (`--precision auto`). Before the timings it
-//! prints where the verified path's time goes (network, screen, confirmation) and each path's
-//! success on these pairs.
+//! prints where the verified path's time goes (network, screen, confirmation, classical
+//! fallback) and each path's success on these pairs.
 //!
 //! Pairs: 24 held-out pairs cut from `POSEMATCH_BENCH_PHOTOS` (default
 //! `/usr/share/backgrounds/mate`, Debian's mate-backgrounds) at S1.5 with 36x36 templates.
@@ -134,13 +134,15 @@ fn benches(c: &mut Criterion) {
         let network: Vec<Option<Pose>> = pairs.iter().map(|p| network_top1(&matcher, p)).collect();
         let refined: Vec<Option<Pose>> = pairs.iter().map(|p| refined_top1(&matcher, p)).collect();
         println!(
-            "{name} weights ({arithmetic}), {} pairs: verified {total_ms:.1} ms/pair = prepare {:.1} + network {:.1} + peaks {:.1} + screen {:.1} + confirm {:.1} (+ template encode); Succ network {} / refined {} / verified {}",
+            "{name} weights ({arithmetic}), {} pairs: verified {total_ms:.1} ms/pair = prepare {:.1} + network {:.1} + peaks {:.1} + screen {:.1} + confirm {:.1} + classical fallback {:.1} (ran on {} pairs) (+ template encode); Succ network {} / refined {} / verified {}",
             pairs.len(),
             mean(|t| t.prepare_ms),
             mean(|t| t.network_ms),
             mean(|t| t.peaks_ms),
             mean(|t| t.screen_ms),
             mean(|t| t.refine_ms),
+            mean(|t| t.fallback_ms),
+            runs.iter().filter(|(_, t)| t.fallback_ms > 0.0).count(),
             successes(&pairs, &network),
             successes(&pairs, &refined),
             successes(&pairs, &answers),

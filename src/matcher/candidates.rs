@@ -156,9 +156,9 @@ pub fn verify_candidates(
 }
 
 /// `answers` and, when none of them reaches `trigger_score` (the caller's `min_score`) and
-/// `options` ask for it, the classical fallback's ([`ncc::fallback_match`]; `network_score`
-/// 0), selected together under `options`; with the milliseconds the fallback took (0 when it
-/// did not run).
+/// `options` ask for it, those of the classical fallback ([`ncc::fallback_candidates`],
+/// verified like the network's candidates; `network_score` 0), selected together under
+/// `options`; with the milliseconds the fallback took (0 when it did not run).
 pub fn with_classical_fallback(
     template: &GrayImage32,
     image: &GrayImage32,
@@ -171,14 +171,10 @@ pub fn with_classical_fallback(
     }
     let start = Instant::now();
     let mut poses = answers;
-    if let Some(found) = ncc::fallback_match(template, image, options) {
-        poses.extend(found);
-        poses = select(
-            poses,
-            options,
-            template.width as f32,
-            template.height as f32,
-        );
+    if let Some(candidates) = ncc::fallback_candidates(template, image, options) {
+        let size = (template.width as f32, template.height as f32);
+        poses.extend(verify_candidates(template, size, image, candidates, options).poses);
+        poses = select(poses, options, size.0, size.1);
     }
     (poses, start.elapsed().as_secs_f64() * 1e3)
 }
@@ -466,7 +462,7 @@ mod tests {
         let (_, template, _) = scene();
         let large = texture(800, 800, 3);
         let options = MatchOptions::default();
-        assert!(ncc::fallback_match(&template, &large, &options).is_none());
+        assert!(ncc::fallback_candidates(&template, &large, &options).is_none());
     }
 
     /// The network reads an angle as `±acos(cos)` with the sign from its sign map; on the
