@@ -111,13 +111,15 @@ impl AlignPoints {
     }
 }
 
-/// Levenberg–Marquardt iterations of the five parameters from `start`; returns the pose with
-/// the lowest normalised residual found (never worse than `start`).
+/// Levenberg–Marquardt iterations of the five parameters from `start`, at most `iterations`
+/// and until a step lowers the normalised residual by less than `tolerance` of itself;
+/// returns the pose with the lowest residual found (never worse than `start`).
 pub(super) fn align(
     points: &AlignPoints,
     window: &GradientWindow,
     start: &Pose,
     iterations: usize,
+    tolerance: f64,
 ) -> Pose {
     let mut pose = *start;
     let Some(mut cost) = residual_cost(points, window, &pose) else {
@@ -147,7 +149,7 @@ pub(super) fn align(
             }
             match residual_cost(points, window, &candidate) {
                 Some(c) if c < cost => {
-                    let converged = (cost - c) < 1e-5 * cost.max(1e-12);
+                    let converged = (cost - c) < tolerance * cost.max(1e-12);
                     pose = candidate;
                     cost = c;
                     damping = (damping * 0.3).max(1e-7);

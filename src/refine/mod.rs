@@ -50,6 +50,9 @@ const FULL_CIRCLE_BELOW: f32 = 0.8;
 /// basin first, then the sharp image for the last fraction of a pixel.
 const ALIGN_SIGMAS: [f32; 3] = [2.0, 1.0, 0.0];
 
+/// The refinement's alignment runs until a step lowers its residual by less than this share.
+const ALIGN_TOLERANCE: f64 = 1e-5;
+
 /// Every `stride`-th pixel of `template` (at most ~`max_side` per side): offsets from the
 /// template centre and values.
 fn grid_points(template: &GrayImage32, max_side: usize) -> (Vec<(f32, f32)>, Vec<f32>) {
@@ -453,7 +456,7 @@ fn align_from(
     for start in starts {
         let mut pose = *start;
         for (points, window) in &levels {
-            pose = align::align(points, window, &pose, 20);
+            pose = align::align(points, window, &pose, 20, ALIGN_TOLERANCE);
         }
         let score = support.score(image, &pose);
         if score > best.score {

@@ -63,6 +63,13 @@ const WHOLE_LEVEL_PIXELS: usize = 1 << 20;
 /// Gauss–Newton iterations of the screening level's alignment.
 const LEVEL_ITERATIONS: usize = 10;
 
+/// The screening level's alignment stops once a step lowers its residual by less than this
+/// share: the screen ranks candidates, confirmation makes the pose precise. Tuning photos
+/// (S1.5, 500 pairs; verified Succ default / official): corpus photos 97.8 / 98.4 %, lomiri
+/// 99.4 / 100 % at 1e-5 and at 1e-2; generated noise (official, 300 pairs) 89.7 → 89.0 %, 85.7
+/// → 85.0 %; about 1.5 ms less per 224 pair with the default weights.
+const LEVEL_TOLERANCE: f64 = 1e-2;
+
 /// A candidate after the screen: its centre, the best angle and scales found there and their
 /// sparse ZNCC on the screening level, in [-1, 1].
 #[derive(Debug, Clone, Copy)]
@@ -295,7 +302,13 @@ impl<'a> Verifier<'a> {
         // Aligned from each window's best: the grid scores angles at the candidate's centre,
         // and with that centre a few pixels off a wrong angle can outscore the right one.
         for start in &windows {
-            let aligned = align::align(&self.level_align, window, &start.pose, LEVEL_ITERATIONS);
+            let aligned = align::align(
+                &self.level_align,
+                window,
+                &start.pose,
+                LEVEL_ITERATIONS,
+                LEVEL_TOLERANCE,
+            );
             let moved = (aligned.x - on_level.x).hypot(aligned.y - on_level.y);
             let score = self.level_points.score(&self.level_image, &aligned);
             if score > best.score
