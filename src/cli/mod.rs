@@ -90,7 +90,7 @@ pub struct VerificationArgs {
     pub max_candidates: usize,
     /// Do not search the image classically (at the template's expected scale) when none of
     /// the network's candidates verifies at --min-score; by default that search runs where it
-    /// costs less than about 60 ms (e.g. up to about 350x350 pixels for a 36x36 template).
+    /// costs less than about 65 ms (e.g. up to about 650x650 pixels for a 36x36 template).
     #[arg(long)]
     pub no_classical_fallback: bool,
 }
