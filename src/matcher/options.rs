@@ -138,7 +138,7 @@ pub struct MatchOptions {
     pub method: Method,
     /// With verification: when no candidate of the network verifies at `min_score`, search the
     /// image with the classical matcher at the template's expected scale
-    /// ([`super::ncc::fallback_match`]; small searches only). Off: the network's candidates
+    /// ([`super::ncc::fallback_candidates`]; small searches only). Off: the network's candidates
     /// alone (a frame without the part costs no more than one with it).
     pub classical_fallback: bool,
 }
