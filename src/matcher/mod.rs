@@ -142,8 +142,9 @@ pub struct Matcher {
     network: InferenceNetwork,
     device: Device,
     convention: InputConvention,
-    /// Network inputs up to this many pixels run whole; larger ones are tiled.
-    max_whole_pixels: usize,
+    /// Network inputs up to this many pixels run whole, larger ones are tiled; `None`: what
+    /// the network's precision allows ([`plan::max_whole_pixels`]).
+    max_whole_pixels: Option<usize>,
     /// Objects' size on the network grid relative to the template grid (see
     /// [`plan::scale_passes`]); [`plan::DEFAULT_GRID_SCALE`] everywhere but in measurements.
     grid_scale: f32,
@@ -154,7 +155,12 @@ struct Piece {
     job: usize,
     pass: ScalePass,
     tile: Tile,
-    input: RgbImage32,
+    /// Network input size (the tile's, after padding small images).
+    width: usize,
+    height: usize,
+    /// The normalised input, planar `[3, height, width]`; handed to the network (left empty)
+    /// when the piece runs, so a large frame's input exists once, not as RGB and planar both.
+    planar: Vec<f32>,
 }
 
 impl Matcher {
@@ -164,7 +170,7 @@ impl Matcher {
             network: InferenceNetwork::new(model, &device),
             device,
             convention,
-            max_whole_pixels: plan::MAX_WHOLE_PIXELS,
+            max_whole_pixels: None,
             grid_scale: plan::DEFAULT_GRID_SCALE,
         }
     }
@@ -187,10 +193,15 @@ impl Matcher {
     }
 
     /// Inputs above `pixels` network pixels run as overlapping tiles (bounded memory; see
-    /// [`plan`]). The default is [`plan::MAX_WHOLE_PIXELS`].
+    /// [`plan`]). The default depends on the precision: [`plan::max_whole_pixels`].
     pub fn with_max_whole_pixels(mut self, pixels: usize) -> Self {
-        self.max_whole_pixels = pixels;
+        self.max_whole_pixels = Some(pixels);
         self
+    }
+
+    fn max_whole_pixels(&self) -> usize {
+        self.max_whole_pixels
+            .unwrap_or_else(|| plan::max_whole_pixels(self.network.precision()))
     }
 
     pub fn device(&self) -> &Device {
@@ -263,7 +274,13 @@ impl Matcher {
         let mut results: Vec<Result<Proposal, MatchError>> = Vec::with_capacity(jobs.len());
         let mut pieces = Vec::new();
         for (index, job) in jobs.iter().enumerate() {
-            match prepare(index, job, self.max_whole_pixels, self.grid_scale) {
+            match prepare(
+                index,
+                job,
+                self.max_whole_pixels(),
+                self.grid_scale,
+                self.convention,
+            ) {
                 Ok(job_pieces) => {
                     pieces.extend(job_pieces);
                     results.push(Ok(Proposal::default()));
@@ -274,16 +291,14 @@ impl Matcher {
         let prepare_ms = ms_since(start);
         let (mut network_ms, mut peaks_ms) = (0.0, 0.0);
         // Same-sized pieces share a forward pass.
-        pieces.sort_by_key(|p| (p.input.width, p.input.height));
-        for group in pieces
-            .chunk_by(|a, b| (a.input.width, a.input.height) == (b.input.width, b.input.height))
-        {
-            // One forward holds at most MAX_WHOLE_PIXELS network pixels (bounded memory): large
+        pieces.sort_by_key(|p| (p.width, p.height));
+        for group in pieces.chunk_by_mut(|a, b| (a.width, a.height) == (b.width, b.height)) {
+            // One forward holds at most max_whole_pixels network pixels (bounded memory): large
             // tiles go one at a time, small images together. How many jobs come at once is the
             // caller's choice (the service's `max_batch_size`), not limited again here.
-            let pixels = group[0].input.width as usize * group[0].input.height as usize;
-            let per_batch = (plan::MAX_WHOLE_PIXELS / pixels).max(1);
-            for batch in group.chunks(per_batch) {
+            let pixels = group[0].width * group[0].height;
+            let per_batch = (self.max_whole_pixels() / pixels).max(1);
+            for batch in group.chunks_mut(per_batch) {
                 let t = Instant::now();
                 let planes = self.run_network(jobs, batch);
                 network_ms += ms_since(t);
@@ -322,9 +337,20 @@ impl Matcher {
 
     /// One forward pass over same-sized pieces; returns the five planes of each, concatenated
     /// as `[score, sign, cos, scale_x, scale_y]`.
-    fn run_network(&self, jobs: &[MatchJob], batch: &[Piece]) -> Vec<Vec<f32>> {
-        let inputs: Vec<&RgbImage32> = batch.iter().map(|p| &p.input).collect();
-        let images = to_network_input(&inputs, self.convention, &self.device);
+    fn run_network(&self, jobs: &[MatchJob], batch: &mut [Piece]) -> Vec<Vec<f32>> {
+        let (width, height) = (batch[0].width, batch[0].height);
+        let planar = if let [piece] = batch {
+            std::mem::take(&mut piece.planar)
+        } else {
+            batch
+                .iter_mut()
+                .flat_map(|p| std::mem::take(&mut p.planar))
+                .collect()
+        };
+        let images = Tensor::from_data(
+            TensorData::new(planar, [batch.len(), 3, height, width]),
+            &self.device,
+        );
         let kernels = Tensor::cat(
             batch
                 .iter()
@@ -438,6 +464,7 @@ fn prepare(
     job: &MatchJob,
     max_whole_pixels: usize,
     grid_scale: f32,
+    convention: InputConvention,
 ) -> Result<Vec<Piece>, MatchError> {
     let (tw, th) = (job.template.width, job.template.height);
     let (iw, ih) = (job.image.width, job.image.height);
@@ -452,22 +479,24 @@ fn prepare(
             padded.height as usize,
             max_whole_pixels,
         ) {
-            let input =
+            let planar =
                 if tile.width == padded.width as usize && tile.height == padded.height as usize {
-                    padded.clone()
+                    convention.normalise(&padded)
                 } else {
-                    padded.crop(
+                    convention.normalise(&padded.crop(
                         tile.x0 as u32,
                         tile.y0 as u32,
                         tile.width as u32,
                         tile.height as u32,
-                    )
+                    ))
                 };
             pieces.push(Piece {
                 job: index,
                 pass,
                 tile,
-                input,
+                width: tile.width,
+                height: tile.height,
+                planar,
             });
         }
     }
@@ -477,8 +506,8 @@ fn prepare(
 /// Peaks of one piece that it owns, as poses in the original image.
 fn piece_poses(piece: &Piece, maps: &[f32], job: &MatchJob) -> Vec<Pose> {
     // The network output is 4*floor(side/4).
-    let w = piece.input.width as usize / 4 * 4;
-    let h = piece.input.height as usize / 4 * 4;
+    let w = piece.width / 4 * 4;
+    let h = piece.height / 4 * 4;
     let n = w * h;
     let planes = MapPlanes {
         width: w,

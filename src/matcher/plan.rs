@@ -12,22 +12,34 @@
 //! in one pass (ratio > 3) is split into several passes at different `f`.
 //!
 //! # Tiling
-//! Up to [`MAX_WHOLE_PIXELS`] network pixels run as one piece. Larger inputs run as equal tiles
+//! Up to [`max_whole_pixels`] network pixels run as one piece. Larger inputs run as equal tiles
 //! of side at most [`TILE`] that overlap by `2 x` [`TILE_MARGIN`]; each tile owns only the peaks
 //! in its core, so every object centre is decoded in a tile that holds the whole object (an object
 //! at the top of the scale range spans at most 2·36·√2 ≈ 102 px, so a 64 px margin covers half of
 //! it). GRN normalises over the whole feature map, so tiles see slightly different features than
 //! one full pass would; `tests/matching.rs` measures what that costs.
 
-use crate::model::TEMPLATE_GRID;
+use crate::model::{Precision, TEMPLATE_GRID};
 
-/// Largest network input side of a tile (a multiple of 4).
-pub const TILE: usize = 1024;
 /// Overlap on each side of a tile's core.
 pub const TILE_MARGIN: usize = 64;
-/// Inputs up to this many network pixels run whole (1024x1024). Peak memory of one forward
-/// pass is about 0.6 KB per network pixel, so this bounds it near 700 MB.
-pub const MAX_WHOLE_PIXELS: usize = TILE * TILE;
+/// Inputs up to this many network pixels run whole (2048x2048) when the products run in bf16.
+/// The activations a forward pass keeps (in the pool, from one frame to the next) are about
+/// 0.12 KB per network pixel then — the backbone's 384 hidden channels at a sixteenth of the
+/// pixels in bf16 are the largest — so this bounds them near 500 MB.
+pub const MAX_WHOLE_PIXELS_BF16: usize = 2048 * 2048;
+/// The same for f32 products (1448x1448): about 0.2 KB per network pixel, near 420 MB.
+pub const MAX_WHOLE_PIXELS_F32: usize = 1448 * 1448;
+
+/// Inputs up to this many network pixels run whole; larger ones run as tiles. A whole input
+/// costs the fewest network pixels (tiles overlap by `2 x` [`TILE_MARGIN`]: a 1930² input
+/// in 9 tiles is 30 % more pixels) and sees GRN's whole-image statistics.
+pub fn max_whole_pixels(precision: Precision) -> usize {
+    match precision {
+        Precision::Bf16 => MAX_WHOLE_PIXELS_BF16,
+        Precision::F32 | Precision::Auto => MAX_WHOLE_PIXELS_F32,
+    }
+}
 /// Refuse a search that would need more network pixels than this (a tiny template on a huge
 /// frame): minutes of CPU that nobody asked for. The service's `max_network_pixels` budget is
 /// tighter and must not exceed it.

@@ -22,8 +22,8 @@ use super::Precision;
 use super::backbone::{Backbone, ConvNextBlock, GRN_EPS, LAYER_NORM_EPS};
 use super::bf16::{self, Bf16Weights};
 use super::host_ops::{
-    BufferPool, add_in_place, depthwise_pixels, gelu_with_squares, layer_norm_rows, matmul_bias,
-    scale_shift_rows, values,
+    BufferPool, Pooled, add_in_place, depthwise_pixels, gelu_with_squares, layer_norm_rows,
+    matmul_bias, scale_shift_rows, values,
 };
 
 /// Pixels per parallel chunk: the chunk's fc1 output (256 x 384 f32, 384 KiB) stays in L2.
@@ -447,32 +447,38 @@ impl HostBackbone {
 }
 
 /// Depthwise correlation of channels-last features `[h, w, c]` with one sample's kernels
-/// `[c, k, k]` (zero padding `k / 2`) → `[h, w, c]` (a buffer from `pool`).
-pub(crate) fn correlate(
+/// `[c, k, k]` (zero padding `k / 2`) → `[h, w, c]` in the element type the next layer's
+/// products take (a buffer from `pool`; converted chunk by chunk while in cache).
+pub(crate) fn correlate<T: Pooled>(
     features: &[f32],
     h: usize,
     w: usize,
     kernels: &[f32],
     k: usize,
     pool: &mut BufferPool,
-) -> Vec<f32> {
+) -> Vec<T> {
     let c = kernels.len() / (k * k);
     let taps = channels_last_taps(kernels, c, k);
-    let mut out = pool.take::<f32>(h * w * c);
+    let mut out = pool.take::<T>(h * w * c);
     out.par_chunks_mut(CHUNK_PIXELS * c)
         .enumerate()
-        .for_each(|(chunk, out)| {
-            depthwise_pixels(
-                features,
-                h,
-                w,
-                &taps,
-                k,
-                None,
-                None,
-                chunk * CHUNK_PIXELS,
-                out,
-            )
-        });
+        .for_each_init(
+            || vec![0f32; CHUNK_PIXELS * c],
+            |values, (chunk, out)| {
+                let values = &mut values[..out.len()];
+                depthwise_pixels(
+                    features,
+                    h,
+                    w,
+                    &taps,
+                    k,
+                    None,
+                    None,
+                    chunk * CHUNK_PIXELS,
+                    values,
+                );
+                T::convert_into(values, out);
+            },
+        );
     out
 }

@@ -14,7 +14,7 @@ use rayon::prelude::*;
 
 use super::Precision;
 use super::bf16::{self, Bf16Weights};
-use super::host_ops::{BufferPool, Pooled, matmul_bias, values};
+use super::host_ops::{BufferPool, Pooled, converted, matmul_bias, values};
 use super::tdcm::{HEAD_SCALE_MAX, HEAD_SCALE_MIN, Heads, SearchMatcher};
 use burn::nn::BatchNorm;
 use burn::nn::conv::Conv2d;
@@ -23,7 +23,7 @@ use burn::nn::conv::Conv2d;
 const CHUNK_BYTES: usize = 384 * 1024;
 
 /// A 3x3 convolution (padding 1) as an im2col weight matrix.
-struct Conv3x3 {
+pub(super) struct Conv3x3 {
     cin: usize,
     cout: usize,
     /// `[9 * cin, cout]`, row `(ky * 3 + kx) * cin + ci`.
@@ -34,9 +34,7 @@ struct Conv3x3 {
 }
 
 /// An element of im2col patches: f32 for the exact path, bf16 bits for the tiles.
-trait Patch: Pooled {
-    /// `values` in this element type, into `out` (same length).
-    fn convert_into(values: &[f32], out: &mut [Self]);
+pub(super) trait Patch: Pooled {
     /// Values per patch row (9 · cin, padded to the tiles' k steps for bf16).
     fn row_len(conv: &Conv3x3) -> usize;
     /// Patch rows a buffer for `pixels` pixels must hold.
@@ -46,10 +44,6 @@ trait Patch: Pooled {
 }
 
 impl Patch for f32 {
-    fn convert_into(values: &[f32], out: &mut [f32]) {
-        out.copy_from_slice(values);
-    }
-
     fn row_len(conv: &Conv3x3) -> usize {
         9 * conv.cin
     }
@@ -64,10 +58,6 @@ impl Patch for f32 {
 }
 
 impl Patch for u16 {
-    fn convert_into(values: &[f32], out: &mut [u16]) {
-        bf16::round_into(values, out);
-    }
-
     fn row_len(conv: &Conv3x3) -> usize {
         conv.bf16_weights().lhs_stride()
     }
@@ -79,16 +69,6 @@ impl Patch for u16 {
     fn multiply(conv: &Conv3x3, patches: &[u16], pixels: usize, out: &mut [f32]) {
         bf16::multiply(patches, pixels, conv.bf16_weights(), out);
     }
-}
-
-/// `values` as a pooled buffer of `T`, converted in parallel chunks.
-fn converted<T: Patch>(values: &[f32], pool: &mut BufferPool) -> Vec<T> {
-    const CHUNK: usize = 64 * 1024;
-    let mut out = pool.take::<T>(values.len());
-    out.par_chunks_mut(CHUNK)
-        .zip(values.par_chunks(CHUNK))
-        .for_each(|(out, values)| T::convert_into(values, out));
-    out
 }
 
 impl Conv3x3 {
@@ -202,6 +182,38 @@ impl Conv3x3 {
         matmul_bias(patches, pixels, k, &self.matrix, n, &self.bias, out);
     }
 
+    /// [`Conv3x3::forward`] with the output in the next layer's element type `U`, converted
+    /// chunk by chunk while in cache (no f32 copy of the whole output).
+    fn forward_converted<T: Patch, U: Pooled>(
+        &self,
+        input: &[T],
+        height: usize,
+        width: usize,
+        pool: &mut BufferPool,
+    ) -> Vec<U> {
+        let chunk_rows = self.chunk_rows::<T>(width);
+        let mut out = pool.take::<U>(height * width * self.cout);
+        out.par_chunks_mut(chunk_rows * width * self.cout)
+            .enumerate()
+            .for_each_init(
+                || {
+                    (
+                        vec![T::default(); T::rows_for(chunk_rows * width) * T::row_len(self)],
+                        vec![0f32; chunk_rows * width * self.cout],
+                    )
+                },
+                |(patches, values), (chunk, out)| {
+                    let y0 = chunk * chunk_rows;
+                    let n = (height - y0).min(chunk_rows);
+                    self.im2col(input, height, width, y0, n, patches);
+                    let values = &mut values[..n * width * self.cout];
+                    T::multiply(self, patches, n * width, values);
+                    U::convert_into(values, out);
+                },
+            );
+        out
+    }
+
     /// The convolution over a whole channels-last image: `[h * w, cin]` → `[h * w, cout]`
     /// (a pooled buffer).
     fn forward<T: Patch>(
@@ -211,15 +223,28 @@ impl Conv3x3 {
         width: usize,
         pool: &mut BufferPool,
     ) -> Vec<f32> {
-        let rows = self.chunk_rows::<T>(width);
-        let mut out = pool.take::<f32>(height * width * self.cout);
-        out.par_chunks_mut(rows * width * self.cout)
+        self.forward_rows(input, height, width, 0..height, pool)
+    }
+
+    /// Output rows `rows` of the convolution over a whole channels-last image `[h * w, cin]`:
+    /// `[rows.len() * w, cout]` (a pooled buffer).
+    fn forward_rows<T: Patch>(
+        &self,
+        input: &[T],
+        height: usize,
+        width: usize,
+        rows: std::ops::Range<usize>,
+        pool: &mut BufferPool,
+    ) -> Vec<f32> {
+        let chunk_rows = self.chunk_rows::<T>(width);
+        let mut out = pool.take::<f32>(rows.len() * width * self.cout);
+        out.par_chunks_mut(chunk_rows * width * self.cout)
             .enumerate()
             .for_each_init(
-                || vec![T::default(); T::rows_for(rows * width) * T::row_len(self)],
+                || vec![T::default(); T::rows_for(chunk_rows * width) * T::row_len(self)],
                 |patches, (chunk, out)| {
-                    let y0 = chunk * rows;
-                    let n = (height - y0).min(rows);
+                    let y0 = rows.start + chunk * chunk_rows;
+                    let n = (rows.end - y0).min(chunk_rows);
                     self.im2col(input, height, width, y0, n, patches);
                     T::multiply(self, patches, n * width, out);
                 },
@@ -229,16 +254,10 @@ impl Conv3x3 {
 }
 
 /// ReLU then PixelShuffle(2), channels-last, into the next layer's element type:
-/// `[h, w, 4c]` → `[2h, 2w, c]` (a pooled buffer; rows follow from the length),
+/// `[h, w, 4c]` → `[2h, 2w, c]` in `out` (`input.len()` values; rows follow from the length),
 /// `out[2y + i, 2x + j, ch] = max(in[y, x, 4ch + 2i + j], 0)`.
-fn relu_shuffle<T: Patch>(
-    input: &[f32],
-    width: usize,
-    channels_in: usize,
-    pool: &mut BufferPool,
-) -> Vec<T> {
+fn relu_shuffle_into<T: Patch>(input: &[f32], width: usize, channels_in: usize, out: &mut [T]) {
     let c = channels_in / 4;
-    let mut out = pool.take::<T>(input.len());
     out.par_chunks_mut(2 * width * c).enumerate().for_each_init(
         || vec![0f32; 2 * width * c],
         |row, (oy, out)| {
@@ -254,7 +273,6 @@ fn relu_shuffle<T: Patch>(
             T::convert_into(row, out);
         },
     );
-    out
 }
 
 /// Where the pose heads (sign, cos, scale_x, scale_y) are evaluated. The score head runs at
@@ -332,34 +350,40 @@ impl HeadsCpu {
         }
     }
 
-    /// `[h * w, 24]` → `[5, h * w]` planes (score, sign, cos, scale_x, scale_y) in `planes`.
-    fn forward<T: Patch>(
+    /// Output rows `rows` of the heads over `input` (`[height * width, 24]`, zero beyond its
+    /// edges) → the five planes (score, sign, cos, scale_x, scale_y) at those pixels, written
+    /// from row `plane_row` of `planes` (`[5, plane_len]`, rows `width` long).
+    #[allow(clippy::too_many_arguments)]
+    fn forward_rows<T: Patch>(
         &self,
         input: &[T],
         height: usize,
         width: usize,
+        rows: std::ops::Range<usize>,
         pose: PoseHeads,
         pool: &mut BufferPool,
         planes: &mut [f32],
+        plane_row: usize,
     ) {
-        let rows = self.hidden.chunk_rows::<T>(width);
+        let chunk_rows = self.hidden.chunk_rows::<T>(width);
         let k = T::row_len(&self.hidden);
-        let mut pixel_major = pool.take::<f32>(height * width * 5);
+        let pixels = rows.len() * width;
+        let mut pixel_major = pool.take::<f32>(pixels * 5);
         pixel_major
-            .par_chunks_mut(rows * width * 5)
+            .par_chunks_mut(chunk_rows * width * 5)
             .enumerate()
             .for_each_init(
                 || {
                     (
-                        vec![T::default(); T::rows_for(rows * width) * k],
-                        vec![0f32; rows * width * self.hidden.cout],
+                        vec![T::default(); T::rows_for(chunk_rows * width) * k],
+                        vec![0f32; chunk_rows * width * self.hidden.cout],
                         Vec::<T>::new(),
                         Vec::<usize>::new(),
                     )
                 },
                 |(patches, features, gathered, selected), (chunk, out)| {
-                    let y0 = chunk * rows;
-                    let n = (height - y0).min(rows);
+                    let y0 = rows.start + chunk * chunk_rows;
+                    let n = (rows.end - y0).min(chunk_rows);
                     self.hidden.im2col(input, height, width, y0, n, patches);
                     let out = &mut out[..n * width * 5];
                     match pose {
@@ -405,11 +429,12 @@ impl HeadsCpu {
                     }
                 },
             );
-        let pixels = height * width;
+        let plane_len = planes.len() / 5;
         planes
-            .par_chunks_mut(pixels)
+            .par_chunks_mut(plane_len)
             .enumerate()
             .for_each(|(head, plane)| {
+                let plane = &mut plane[plane_row * width..][..pixels];
                 for (v, o) in plane.iter_mut().zip(pixel_major.chunks_exact(5)) {
                     *v = o[head];
                 }
@@ -458,31 +483,21 @@ impl HostDecoder {
         self.heads.set_precision(precision);
     }
 
-    /// One sample's channels-last correlation `[h, w, 96]` → its five maps `[5, 4h, 4w]`
-    /// (planes) in `maps`, and the intermediates when `trace`. Activations come from and go
-    /// back to `pool`.
-    #[allow(clippy::too_many_arguments)]
-    pub fn forward(
-        &self,
-        correlation: &[f32],
-        h: usize,
-        w: usize,
-        trace: bool,
-        pose: PoseHeads,
-        pool: &mut BufferPool,
-        maps: &mut [f32],
-    ) -> Option<HostTrace> {
-        if self.fusion.bf16.is_some() {
-            self.forward_with::<u16>(correlation, h, w, trace, pose, pool, maps)
-        } else {
-            self.forward_with::<f32>(correlation, h, w, trace, pose, pool, maps)
-        }
+    /// Whether the products take bf16 patches (`u16` activations) rather than f32: the element
+    /// type [`HostDecoder::forward`] wants its input in.
+    pub fn takes_bf16(&self) -> bool {
+        self.fusion.bf16.is_some()
     }
 
+    /// One sample's channels-last correlation `[h, w, 96]`, in the products' element type
+    /// ([`HostDecoder::takes_bf16`]) → its five maps `[5, 4h, 4w]` (planes) in `maps`, and the
+    /// intermediates when `trace`. Activations come from and go back to `pool`: each goes back
+    /// as soon as the next layer has read it, so at most two whole-image activations are alive
+    /// at a time.
     #[allow(clippy::too_many_arguments)]
-    fn forward_with<T: Patch>(
+    pub(super) fn forward<T: Patch>(
         &self,
-        correlation: &[f32],
+        correlation: Vec<T>,
         h: usize,
         w: usize,
         trace: bool,
@@ -490,36 +505,179 @@ impl HostDecoder {
         pool: &mut BufferPool,
         maps: &mut [f32],
     ) -> Option<HostTrace> {
-        let input = converted::<T>(correlation, pool);
-        let fused = self.fusion.forward(&input, h, w, pool); // [h, w, 96]
+        let (fused, fusion) = if trace {
+            let fusion = self.fusion.forward(&correlation, h, w, pool);
+            (converted::<T>(&fusion, pool), Some(fusion))
+        } else {
+            let fused = self
+                .fusion
+                .forward_converted::<T, T>(&correlation, h, w, pool);
+            (fused, None)
+        }; // [h, w, 96]
+        pool.give(correlation);
+        let (input, bn1) = self.conv1_shuffled(&fused, h, w, trace, pool); // [2h, 2w, 48]
+        pool.give(fused);
+        let band = tail_band_rows(2 * h, 2 * w, self.conv2.cout);
+        let bn2 = self.tail(&input, 2 * h, 2 * w, band, trace, pose, pool, maps);
         pool.give(input);
-        let input = converted::<T>(&fused, pool);
-        let x = self.conv1.forward(&input, h, w, pool); // [h, w, 192]
-        pool.give(input);
-        let bn1 = trace.then(|| x.clone());
-        let input = relu_shuffle::<T>(&x, w, self.conv1.cout, pool); // [2h, 2w, 48]
-        pool.give(x);
-        let x = self.conv2.forward(&input, 2 * h, 2 * w, pool); // [2h, 2w, 96]
-        pool.give(input);
-        let bn2 = trace.then(|| x.clone());
-        let input = relu_shuffle::<T>(&x, 2 * w, self.conv2.cout, pool); // [4h, 4w, 24]
-        pool.give(x);
-        self.heads.forward(&input, 4 * h, 4 * w, pose, pool, maps);
-        pool.give(input);
-        let trace = trace.then(|| HostTrace {
-            fusion: fused.clone(),
+        trace.then(|| HostTrace {
+            fusion: fusion.expect("traced"),
             bn1: bn1.expect("traced"),
             bn2: bn2.expect("traced"),
-        });
-        pool.give(fused);
-        trace
+        })
     }
+
+    /// conv1 (+ BatchNorm) → ReLU + PixelShuffle over `input` (`[h * w, 96]`) →
+    /// `[2h, 2w, 48]` in `T` (a pooled buffer), band by band of rows so that conv1's f32
+    /// output (192 channels) exists only for one band; that output too when `trace`.
+    fn conv1_shuffled<T: Patch>(
+        &self,
+        input: &[T],
+        h: usize,
+        w: usize,
+        trace: bool,
+        pool: &mut BufferPool,
+    ) -> (Vec<T>, Option<Vec<f32>>) {
+        let cout = self.conv1.cout;
+        let mut bn1 = trace.then(|| Vec::with_capacity(h * w * cout));
+        let mut shuffled = pool.take::<T>(h * w * cout);
+        let band = tail_band_rows(h, w, cout);
+        for y0 in (0..h).step_by(band) {
+            let y1 = (y0 + band).min(h);
+            let x = self.conv1.forward_rows(input, h, w, y0..y1, pool);
+            if let Some(bn1) = &mut bn1 {
+                bn1.extend_from_slice(&x);
+            }
+            relu_shuffle_into(&x, w, cout, &mut shuffled[y0 * w * cout..y1 * w * cout]);
+            pool.give(x);
+        }
+        (shuffled, bn1)
+    }
+}
+
+impl HostDecoder {
+    /// conv2 (+ BatchNorm) → ReLU + PixelShuffle → heads over `input` (`[h * w, 48]`, half
+    /// resolution) → the five full-resolution planes in `maps`; conv2's output when `trace`.
+    ///
+    /// Band by band of `band` half-resolution rows, so the two largest activations of the network (conv2's 96
+    /// channels at half resolution, the heads' 24 at full resolution: about 0.14 KB per
+    /// network pixel at bf16) exist only for one band at a time and stay in cache from one
+    /// layer to the next. The heads' 3x3 convolution reads one row beyond each band: the last
+    /// two full-resolution rows of a band are carried into the next, and each band's heads
+    /// stop one row short of its end (the last band runs to the bottom edge), so every value
+    /// is computed once and equals the whole-image computation.
+    #[allow(clippy::too_many_arguments)]
+    fn tail<T: Patch>(
+        &self,
+        input: &[T],
+        height: usize,
+        width: usize,
+        band: usize,
+        trace: bool,
+        pose: PoseHeads,
+        pool: &mut BufferPool,
+        maps: &mut [f32],
+    ) -> Option<Vec<f32>> {
+        let (full_height, full_width) = (2 * height, 2 * width);
+        let row_len = full_width * self.conv2.cout / 4;
+        let band = band.clamp(1, height.max(1));
+        let mut bn2 = trace.then(|| Vec::with_capacity(height * width * self.conv2.cout));
+        // Full-resolution rows: up to two carried from the previous band, then this band's.
+        let mut full = pool.take::<T>((2 + 2 * band) * row_len);
+        let (mut carried, mut done) = (0, 0);
+        for y0 in (0..height).step_by(band) {
+            let y1 = (y0 + band).min(height);
+            let x = self.conv2.forward_rows(input, height, width, y0..y1, pool);
+            if let Some(bn2) = &mut bn2 {
+                bn2.extend_from_slice(&x);
+            }
+            let local_rows = carried + 2 * (y1 - y0);
+            relu_shuffle_into(
+                &x,
+                width,
+                self.conv2.cout,
+                &mut full[carried * row_len..local_rows * row_len],
+            );
+            pool.give(x);
+            // Local row 0 is full-resolution row `first`.
+            let first = 2 * y0 - carried;
+            let end = if y1 == height {
+                full_height
+            } else {
+                2 * y1 - 1
+            };
+            self.heads.forward_rows(
+                &full[..local_rows * row_len],
+                local_rows,
+                full_width,
+                done - first..end - first,
+                pose,
+                pool,
+                maps,
+                done,
+            );
+            done = end;
+            full.copy_within((local_rows - 2) * row_len..local_rows * row_len, 0);
+            carried = 2;
+        }
+        pool.give(full);
+        bn2
+    }
+}
+
+/// Rows per band of a banded convolution ([`HostDecoder::tail`], `conv1_shuffled`) over an
+/// image `height x width` with `channels` output channels: the band's f32 output about 4 MB
+/// (L2/L3-sized), at least a few rows per thread so every core has chunks, equal bands.
+fn tail_band_rows(height: usize, width: usize, channels: usize) -> usize {
+    const BAND_BYTES: usize = 4 << 20;
+    let rows = (BAND_BYTES / (width * channels * size_of::<f32>()))
+        .max(4 * rayon::current_num_threads())
+        .clamp(1, height.max(1));
+    // Equal bands.
+    height.div_ceil(height.div_ceil(rows))
 }
 
 #[cfg(test)]
 mod tests {
     use super::*;
     use crate::model::TdcmConfig;
+
+    #[test]
+    fn the_tail_band_by_band_equals_the_whole_image_at_once() {
+        let device = Default::default();
+        let model = TdcmConfig::new().init(&device);
+        let decoder = HostDecoder::new(&model.search_matcher);
+        let (h, w) = (13, 7);
+        let input: Vec<f32> = Tensor::<1>::random(
+            [h * w * 48],
+            burn::tensor::Distribution::Normal(0.0, 1.0),
+            &device,
+        )
+        .into_data()
+        .try_into_vec()
+        .unwrap();
+        let mut pool = BufferPool::default();
+        let mut run = |band, pose| {
+            let mut maps = vec![f32::INFINITY; 5 * 4 * h * w];
+            let bn2 = decoder.tail(&input, h, w, band, true, pose, &mut pool, &mut maps);
+            (maps, bn2.expect("traced"))
+        };
+        for pose in [PoseHeads::Everywhere, PoseHeads::WhereScoreAtLeast(0.5)] {
+            let (whole, whole_bn2) = run(h, pose);
+            assert!(whole.iter().all(|v| v.is_finite() || v.is_nan()));
+            assert_eq!(whole_bn2.len(), h * w * 96);
+            for band in [1, 2, 5, 12] {
+                let (maps, bn2) = run(band, pose);
+                assert_eq!(bn2, whole_bn2, "conv2 with bands of {band} rows");
+                for (p, (a, b)) in maps.iter().zip(&whole).enumerate() {
+                    assert!(
+                        a.to_bits() == b.to_bits(),
+                        "bands of {band} rows, value {p}: {a} vs {b}"
+                    );
+                }
+            }
+        }
+    }
 
     #[test]
     fn pose_heads_where_the_score_is_high_equal_the_full_maps_there() {
@@ -537,7 +695,15 @@ mod tests {
         let mut pool = BufferPool::default();
         let mut planes = |pose| {
             let mut maps = vec![0f32; 5 * 36 * 44];
-            decoder.forward(&correlation, 9, 11, false, pose, &mut pool, &mut maps);
+            decoder.forward(
+                correlation.clone(),
+                9,
+                11,
+                false,
+                pose,
+                &mut pool,
+                &mut maps,
+            );
             maps
         };
         let full = planes(PoseHeads::Everywhere);

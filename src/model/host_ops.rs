@@ -72,14 +72,20 @@ pub(super) struct BufferPool {
     u16s: Vec<Vec<u16>>,
 }
 
-/// Element types the pool keeps.
+/// Element types the pool keeps: f32, and bf16 bits (`u16`) for the bf16 products' inputs.
 pub(super) trait Pooled: Copy + Default + Send + Sync {
     fn shelf(pool: &mut BufferPool) -> &mut Vec<Vec<Self>>;
+    /// `values` in this element type, into `out` (same length).
+    fn convert_into(values: &[f32], out: &mut [Self]);
 }
 
 impl Pooled for f32 {
     fn shelf(pool: &mut BufferPool) -> &mut Vec<Vec<f32>> {
         &mut pool.f32s
+    }
+
+    fn convert_into(values: &[f32], out: &mut [f32]) {
+        out.copy_from_slice(values);
     }
 }
 
@@ -87,6 +93,21 @@ impl Pooled for u16 {
     fn shelf(pool: &mut BufferPool) -> &mut Vec<Vec<u16>> {
         &mut pool.u16s
     }
+
+    fn convert_into(values: &[f32], out: &mut [u16]) {
+        super::bf16::round_into(values, out);
+    }
+}
+
+/// `values` converted to `T`, in parallel chunks (a pooled buffer).
+pub(super) fn converted<T: Pooled>(values: &[f32], pool: &mut BufferPool) -> Vec<T> {
+    use rayon::prelude::*;
+    const CHUNK: usize = 64 * 1024;
+    let mut out = pool.take::<T>(values.len());
+    out.par_chunks_mut(CHUNK)
+        .zip(values.par_chunks(CHUNK))
+        .for_each(|(out, values)| T::convert_into(values, out));
+    out
 }
 
 impl BufferPool {

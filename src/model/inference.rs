@@ -12,8 +12,8 @@ use burn::prelude::*;
 use super::backbone::{BackboneTrace, GeluGrn};
 use super::device::is_host_cpu;
 use super::host_backbone::{HostBackbone, correlate};
-use super::host_decoder::{HostDecoder, PoseHeads};
-use super::host_ops::BufferPool;
+use super::host_decoder::{HostDecoder, Patch, PoseHeads};
+use super::host_ops::{BufferPool, converted};
 use super::tdcm::{MatchMaps, SearchTrace, Tdcm};
 use super::{Precision, PrecisionError};
 
@@ -40,6 +40,16 @@ struct HostSampleTrace {
     features: Vec<f32>,
     correlation: Vec<f32>,
     decoder: super::host_decoder::HostTrace,
+}
+
+/// One search sample's inputs: the normalised image `[3, height, width]` (planar) and its
+/// template's kernels `[channels, k, k]`.
+struct SampleInput<'a> {
+    image: &'a [f32],
+    height: usize,
+    width: usize,
+    kernels: &'a [f32],
+    k: usize,
 }
 
 impl HostSearch {
@@ -69,28 +79,67 @@ impl HostSearch {
         // Concurrent samples each take what the pool holds (possibly nothing), never wait.
         let mut pool =
             std::mem::take(&mut *self.pool.lock().unwrap_or_else(PoisonError::into_inner));
-        let out = self
-            .backbone
-            .forward(image, height, width, trace, &mut pool);
-        let (h, w) = (out.height, out.width);
-        let correlation = correlate(&out.features, h, w, kernels, k, &mut pool);
-        let decoder = self
-            .decoder
-            .forward(&correlation, h, w, trace, pose, &mut pool, maps);
-        let trace = decoder.map(|decoder| HostSampleTrace {
-            stem: out.stem.expect("traced"),
-            stage1: out.stage1.expect("traced"),
-            features: out.features.clone(),
-            correlation: correlation.clone(),
-            decoder,
-        });
-        pool.give(out.features);
-        pool.give(correlation);
+        let sample = SampleInput {
+            image,
+            height,
+            width,
+            kernels,
+            k,
+        };
+        let trace = if self.decoder.takes_bf16() {
+            self.sample_with::<u16>(sample, trace, pose, &mut pool, maps)
+        } else {
+            self.sample_with::<f32>(sample, trace, pose, &mut pool, maps)
+        };
         self.pool
             .lock()
             .unwrap_or_else(PoisonError::into_inner)
             .absorb(pool);
         trace
+    }
+
+    /// [`HostSearch::sample`] with the decoder's activations in `T`.
+    fn sample_with<T: Patch>(
+        &self,
+        sample: SampleInput,
+        trace: bool,
+        pose: PoseHeads,
+        pool: &mut BufferPool,
+        maps: &mut [f32],
+    ) -> Option<HostSampleTrace> {
+        let SampleInput {
+            image,
+            height,
+            width,
+            kernels,
+            k,
+        } = sample;
+        let out = self.backbone.forward(image, height, width, trace, pool);
+        let (h, w) = (out.height, out.width);
+        // The features go back to the pool once correlated, unless traced.
+        let (correlation, traced) = if trace {
+            let correlation = correlate::<f32>(&out.features, h, w, kernels, k, pool);
+            (
+                converted::<T>(&correlation, pool),
+                Some((out.features, correlation)),
+            )
+        } else {
+            let correlation = correlate::<T>(&out.features, h, w, kernels, k, pool);
+            pool.give(out.features);
+            (correlation, None)
+        };
+        let decoder = self
+            .decoder
+            .forward(correlation, h, w, trace, pose, pool, maps);
+        decoder
+            .zip(traced)
+            .map(|(decoder, (features, correlation))| HostSampleTrace {
+                stem: out.stem.expect("traced"),
+                stage1: out.stage1.expect("traced"),
+                features,
+                correlation,
+                decoder,
+            })
     }
 }
 
@@ -295,5 +344,44 @@ impl InferenceNetwork {
         };
         let stacked = Tensor::from_data(TensorData::new(maps, [batch, 5, 4 * h, 4 * w]), &device);
         (MatchMaps { stacked }, search_trace)
+    }
+}
+
+#[cfg(test)]
+mod tests {
+    use super::*;
+    use crate::model::TdcmConfig;
+    use burn::tensor::Distribution;
+
+    /// The untraced path converts activations while they are in cache and returns them to the
+    /// pool early; the traced path (what the parity fixtures check) keeps every f32
+    /// intermediate. Both must give the same maps, bit for bit, in every precision.
+    #[test]
+    fn traced_and_untraced_searches_give_the_same_maps() {
+        let device = Default::default();
+        let model = TdcmConfig::new().init(&device);
+        let mut precisions = vec![Precision::F32];
+        if super::super::bf16::available() {
+            precisions.push(Precision::Bf16);
+        }
+        for precision in precisions {
+            let network = InferenceNetwork::host(model.clone())
+                .with_precision(precision)
+                .unwrap();
+            let template = Tensor::<4>::random([1, 3, 36, 36], Distribution::Default, &device);
+            let kernels = network.encode_templates(template);
+            let image = Tensor::<4>::random([2, 3, 72, 88], Distribution::Default, &device);
+            let plain = network.forward(image.clone(), kernels.clone().repeat_dim(0, 2));
+            let (traced, _) = network.forward_traced(image, kernels.repeat_dim(0, 2));
+            let (a, b): (Vec<f32>, Vec<f32>) = (
+                plain.stacked.into_data().try_into_vec().unwrap(),
+                traced.stacked.into_data().try_into_vec().unwrap(),
+            );
+            assert_eq!(a.len(), 2 * 5 * 72 * 88);
+            assert!(
+                a.iter().zip(&b).all(|(x, y)| x.to_bits() == y.to_bits()),
+                "{precision:?}: maps differ"
+            );
+        }
     }
 }
