@@ -96,6 +96,11 @@ fn peak_rss_mib() -> f64 {
         .map_or(f64::NAN, |kib| kib / 1024.0)
 }
 
+/// Starts a new peak for [`peak_rss_mib`] from the memory in use now (Linux `clear_refs`).
+fn reset_peak_rss() {
+    let _ = std::fs::write("/proc/self/clear_refs", "5");
+}
+
 fn main() {
     // `cargo bench` passes `--bench`; a filter argument selects cases by name.
     let filter: Option<String> = std::env::args().skip(1).find(|a| !a.starts_with("--"));
@@ -143,10 +148,13 @@ fn main() {
         "| weights | arithmetic | case | grid scale | threads | ms/frame (median) | prepare / network / peaks / screen / refine ms | recall | precision |"
     );
     println!("| --- | --- | --- | --- | --- | --- | --- | --- | --- |");
+    let mut memory = Vec::new();
     let runs = models
         .iter()
         .flat_map(|(name, model)| precisions.iter().map(move |p| (*name, model, *p)));
     for (name, model, precision) in runs {
+        // Each model's peak on its own (the previous matcher and its buffers are gone).
+        reset_peak_rss();
         let mut matcher = Matcher::new(model.clone(), device.clone(), InputConvention::ImagenetRgb)
             .with_precision(precision)
             .unwrap_or_else(|e| panic!("{e}"));
@@ -163,13 +171,11 @@ fn main() {
             }
             .validate()
             .unwrap();
-            let scenes: Vec<(RgbImage32, Vec<Pose>)> = (0..frames)
-                .map(|seed| parts_frame(&case.part, case.side, case.grid, case.grid, seed))
-                .collect();
+            // Frames are made one at a time (untimed), as a camera delivers them: the memory
+            // figure is then that of a service holding one frame.
+            let scene = |seed: u64| parts_frame(&case.part, case.side, case.grid, case.grid, seed);
             // One untimed search first: allocations and caches warm, as in a running service.
-            matcher
-                .match_one(&template, &scenes[0].0, &options)
-                .unwrap();
+            matcher.match_one(&template, &scene(0).0, &options).unwrap();
             for &threads in &thread_counts {
                 let pool = rayon::ThreadPoolBuilder::new()
                     .num_threads(threads)
@@ -177,10 +183,11 @@ fn main() {
                     .unwrap();
                 let (mut ms, mut totals) = (Vec::new(), (0, 0, 0));
                 let mut stages = Vec::new();
-                for (frame, truth) in &scenes {
+                for seed in 0..frames {
+                    let (frame, truth) = scene(seed);
                     let start = Instant::now();
                     let outcome = pool
-                        .install(|| matcher.match_one(&template, frame, &options))
+                        .install(|| matcher.match_one(&template, &frame, &options))
                         .unwrap();
                     ms.push(start.elapsed().as_secs_f64() * 1e3);
                     let t = &outcome.timings;
@@ -191,7 +198,7 @@ fn main() {
                         t.screen_ms,
                         t.refine_ms,
                     ));
-                    let (h, d, t) = count(&outcome.poses, truth, &case.part);
+                    let (h, d, t) = count(&outcome.poses, &truth, &case.part);
                     totals = (totals.0 + h, totals.1 + d, totals.2 + t);
                 }
                 let mut order: Vec<usize> = (0..ms.len()).collect();
@@ -207,9 +214,16 @@ fn main() {
                 );
             }
         }
+        memory.push(format!(
+            "peak memory while matching with the {name} weights ({precision}): {:.0} MiB",
+            peak_rss_mib()
+        ));
     }
-    // Before the classical matcher (which needs far more): what the network cases needed, both
-    // models' weights and every case's frames included.
+    for line in memory {
+        println!("{line}");
+    }
+    // Before the classical matcher (which needs far more): the most any network case needed
+    // since the last model's start.
     println!(
         "peak memory of the network cases: {:.0} MiB",
         peak_rss_mib()

@@ -30,10 +30,7 @@ impl RgbImage32 {
 
     /// Luma (BT.601) of every pixel, in [0, 1].
     pub fn to_gray(&self) -> Vec<f32> {
-        self.pixels
-            .chunks_exact(3)
-            .map(|p| 0.299 * p[0] + 0.587 * p[1] + 0.114 * p[2])
-            .collect()
+        self.pixels.chunks_exact(3).map(luma).collect()
     }
 
     /// A copy of the `w x h` window at `(x0, y0)`; the window must lie inside.
@@ -134,4 +131,9 @@ impl RgbImage32 {
         }
         out
     }
+}
+
+/// Grey value of one RGB pixel (ITU-R BT.601 weights, as OpenCV's `cvtColor`).
+pub fn luma(pixel: &[f32]) -> f32 {
+    0.299 * pixel[0] + 0.587 * pixel[1] + 0.114 * pixel[2]
 }

@@ -6,6 +6,7 @@ use fast_image_resize::images::{Image, ImageRef};
 use fast_image_resize::{FilterType, PixelType, ResizeAlg, ResizeOptions, Resizer};
 
 use super::RgbImage32;
+use super::rgb::luma;
 
 /// How pixels become network input values. Written `imagenet` or `gray` (`grey`) in flags and
 /// settings; this is the one parser of those words.
@@ -56,27 +57,33 @@ const IMAGENET_MEAN: [f32; 3] = [0.485, 0.456, 0.406];
 const IMAGENET_STD: [f32; 3] = [0.229, 0.224, 0.225];
 
 impl InputConvention {
-    /// Planar `[3, h, w]` values for one image.
+    /// Planar `[3, h, w]` values for one image (rows in parallel: a large frame's input is
+    /// tens of megabytes).
     pub fn normalise(self, image: &RgbImage32) -> Vec<f32> {
-        let n = image.width as usize * image.height as usize;
+        use rayon::prelude::*;
+        let (w, n) = (
+            image.width as usize,
+            image.width as usize * image.height as usize,
+        );
         let mut planar = vec![0.0f32; 3 * n];
-        match self {
-            Self::ImagenetRgb => {
-                for (i, p) in image.pixels.chunks_exact(3).enumerate() {
-                    for c in 0..3 {
-                        planar[c * n + i] = (p[c] - IMAGENET_MEAN[c]) / IMAGENET_STD[c];
-                    }
-                }
-            }
-            Self::Gray => {
-                for (i, g) in image.to_gray().into_iter().enumerate() {
-                    let v = (g - 0.5) / 0.5;
-                    planar[i] = v;
-                    planar[n + i] = v;
-                    planar[2 * n + i] = v;
-                }
-            }
+        if n == 0 {
+            return planar;
         }
+        let (mean, std, gray) = match self {
+            Self::ImagenetRgb => (IMAGENET_MEAN, IMAGENET_STD, false),
+            Self::Gray => ([0.5; 3], [0.5; 3], true),
+        };
+        planar.par_chunks_mut(n).enumerate().for_each(|(c, plane)| {
+            plane
+                .par_chunks_mut(w)
+                .zip(image.pixels.par_chunks(3 * w))
+                .for_each(|(out, pixels)| {
+                    for (o, p) in out.iter_mut().zip(pixels.chunks_exact(3)) {
+                        let v = if gray { luma(p) } else { p[c] };
+                        *o = (v - mean[c]) / std[c];
+                    }
+                });
+        });
         planar
     }
 }

@@ -300,16 +300,18 @@ impl Matcher {
             let per_batch = (self.max_whole_pixels() / pixels).max(1);
             for batch in group.chunks_mut(per_batch) {
                 let t = Instant::now();
-                let planes = self.run_network(jobs, batch);
+                let maps = self.run_network(jobs, batch);
                 network_ms += ms_since(t);
                 let t = Instant::now();
-                for (piece, maps) in batch.iter().zip(&planes) {
+                let per_piece = maps.len() / batch.len();
+                for (piece, maps) in batch.iter().zip(maps.chunks_exact(per_piece)) {
                     if let Ok(proposal) = &mut results[piece.job] {
                         proposal
                             .candidates
                             .extend(piece_poses(piece, maps, &jobs[piece.job]));
                     }
                 }
+                self.network.recycle(maps);
                 peaks_ms += ms_since(t);
             }
         }
@@ -336,8 +338,9 @@ impl Matcher {
     }
 
     /// One forward pass over same-sized pieces; returns the five planes of each, concatenated
-    /// as `[score, sign, cos, scale_x, scale_y]`.
-    fn run_network(&self, jobs: &[MatchJob], batch: &mut [Piece]) -> Vec<Vec<f32>> {
+    /// as `[piece][score, sign, cos, scale_x, scale_y]` (for [`InferenceNetwork::recycle`] once
+    /// read).
+    fn run_network(&self, jobs: &[MatchJob], batch: &mut [Piece]) -> Vec<f32> {
         let (width, height) = (batch[0].width, batch[0].height);
         let planar = if let [piece] = batch {
             std::mem::take(&mut piece.planar)
@@ -368,20 +371,10 @@ impl Matcher {
             .network
             .forward_for_peaks(images, kernels, PoseHeads::WhereScoreAtLeast(0.5 * least))
             .stacked; // [b, 5, H, W]
-        let [b, _, h, w] = stacked.dims();
-        let values: Vec<f32> = stacked
+        stacked
             .into_data()
             .try_into_vec::<f32>()
-            .expect("network output is f32; this is a bug");
-        if b == 1 {
-            // A large tile's maps are tens of megabytes: no copy.
-            return vec![values];
-        }
-        values
-            .chunks_exact(5 * h * w)
-            .take(b)
-            .map(<[f32]>::to_vec)
-            .collect()
+            .expect("network output is f32; this is a bug")
     }
 }
 

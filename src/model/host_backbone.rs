@@ -459,7 +459,9 @@ pub(crate) fn correlate<T: Pooled>(
 ) -> Vec<T> {
     let c = kernels.len() / (k * k);
     let taps = channels_last_taps(kernels, c, k);
-    let mut out = pool.take::<T>(h * w * c);
+    // The backbone's hidden activations are free now, and the decoder's shuffled activations
+    // want a buffer of their size later, when the correlation's is free again.
+    let mut out = pool.take_largest::<T>(h * w * c);
     out.par_chunks_mut(CHUNK_PIXELS * c)
         .enumerate()
         .for_each_init(

@@ -128,6 +128,18 @@ impl BufferPool {
         buffer
     }
 
+    /// [`BufferPool::take`] from the largest kept buffer, whatever the smallest fitting one:
+    /// for an activation whose neighbours in time are larger (the correlation takes the
+    /// backbone's hidden activations' buffer, so the decoder's next, larger request finds it
+    /// free again instead of growing a second one).
+    pub(super) fn take_largest<T: Pooled>(&mut self, len: usize) -> Vec<T> {
+        let shelf = T::shelf(self);
+        let largest = (0..shelf.len()).max_by_key(|&i| shelf[i].capacity());
+        let mut buffer = largest.map(|i| shelf.swap_remove(i)).unwrap_or_default();
+        buffer.resize(len, T::default());
+        buffer
+    }
+
     /// Keeps `buffer` for a later [`BufferPool::take`].
     pub(super) fn give<T: Pooled>(&mut self, buffer: Vec<T>) {
         if buffer.capacity() > 0 {
@@ -202,9 +214,13 @@ pub(super) fn layer_norm_rows(rows: &mut [f32], gamma: &[f32], beta: &[f32], eps
 /// (row-major indices), written to `out`; `taps` is `[k * k, channels]`, tap `ky * k + kx`.
 /// With `norm`, each output pixel is then LayerNormed (`gamma`, `beta`, `eps`).
 ///
-/// Channels go in blocks of [`LANES`] held in registers across the taps, four horizontally
-/// adjacent pixels at a time where the whole window lies inside the row, so each tap's weights
-/// are loaded once for four pixels.
+/// Channels go in blocks of [`LANES`] held in registers across the taps, [`RUN`] horizontally
+/// adjacent pixels at a time where the whole window lies inside the row. For the kernel sizes
+/// the network uses (7 in the backbone, 9 for the correlation with a 36-pixel template) a run
+/// slides along the row: each input vector is loaded once and feeds every pixel of the run
+/// whose window covers it, and a kernel row's taps are loaded once per run, so loads no longer
+/// outnumber multiply-adds. Every output still adds its taps in the same order (rows, then
+/// columns, ascending), so all paths give the same bits.
 #[multiversion(targets("x86_64+avx512f+avx512vl+avx512bw+avx512dq", "x86_64+avx2+fma"))]
 #[allow(clippy::too_many_arguments)]
 pub(super) fn depthwise_pixels(
@@ -218,8 +234,6 @@ pub(super) fn depthwise_pixels(
     first: usize,
     out: &mut [f32],
 ) {
-    /// Pixels per run.
-    const RUN: usize = 4;
     let channels = taps.len() / (k * k);
     assert!(
         channels.is_multiple_of(LANES) && taps.len() == k * k * channels && k % 2 == 1,
@@ -247,16 +261,21 @@ pub(super) fn depthwise_pixels(
             for ky in ky.clone() {
                 let sy = y + ky - half;
                 if run == RUN {
-                    for kx in 0..k {
-                        let tap: &[f32; LANES] = taps[(ky * k + kx) * channels + block..][..LANES]
-                            .try_into()
-                            .expect("LANES values");
-                        for (p, a) in acc.iter_mut().enumerate() {
-                            let src = (sy * width + x + p + kx - half) * channels + block;
-                            let src: &[f32; LANES] =
-                                input[src..src + LANES].try_into().expect("LANES values");
-                            for l in 0..LANES {
-                                a[l] = src[l].mul_add(tap[l], a[l]);
+                    // The run's window on this kernel row starts at pixel x - half.
+                    let row = &input[(sy * width + x - half) * channels + block..];
+                    let taps_row = &taps[ky * k * channels + block..];
+                    match k {
+                        7 => slide::<7>(&mut acc, row, taps_row, channels),
+                        9 => slide::<9>(&mut acc, row, taps_row, channels),
+                        _ => {
+                            for kx in 0..k {
+                                let tap = lanes_at(taps_row, kx * channels);
+                                for (p, a) in acc.iter_mut().enumerate() {
+                                    let src = lanes_at(row, (p + kx) * channels);
+                                    for l in 0..LANES {
+                                        a[l] = src[l].mul_add(tap[l], a[l]);
+                                    }
+                                }
                             }
                         }
                     }
@@ -281,6 +300,90 @@ pub(super) fn depthwise_pixels(
             }
         }
         i += run;
+    }
+}
+
+/// Pixels per run of [`depthwise_pixels`]: eight accumulators plus a kernel row of up to nine
+/// taps fit in the 32 vector registers of AVX-512 (`slide` unrolls for `RUN + K - 1 <= 16`).
+const RUN: usize = 8;
+
+/// [`LANES`] values of `values` from `at`.
+#[inline(always)]
+fn lanes_at(values: &[f32], at: usize) -> &[f32; LANES] {
+    values[at..at + LANES].try_into().expect("LANES values")
+}
+
+/// One kernel row of `K` taps over a run: `acc[p] += Σ_kx row[p + kx] · taps_row[kx]`, each
+/// sum in ascending `kx`, with `row` and `taps_row` `channels` apart per pixel / tap. Each
+/// input vector is loaded once for the (up to `K`) pixels whose window covers it.
+#[inline(always)]
+fn slide<const K: usize>(
+    acc: &mut [[f32; LANES]; RUN],
+    row: &[f32],
+    taps_row: &[f32],
+    channels: usize,
+) {
+    #[cfg(target_arch = "x86_64")]
+    if std::arch::is_x86_feature_detected!("avx512f") {
+        // SAFETY: the CPU has AVX-512F (checked just above).
+        unsafe { slide_avx512::<K>(acc, row, taps_row, channels) };
+        return;
+    }
+    for j in 0..RUN + K - 1 {
+        let src = lanes_at(row, j * channels);
+        for (p, a) in acc.iter_mut().enumerate() {
+            // Input j is tap j - p of pixel p (j ascending: taps in ascending order).
+            if j >= p && j - p < K {
+                let tap = lanes_at(taps_row, (j - p) * channels);
+                for l in 0..LANES {
+                    a[l] = src[l].mul_add(tap[l], a[l]);
+                }
+            }
+        }
+    }
+}
+
+/// [`slide`] in AVX-512 registers: eight accumulators and the row's `K` taps stay in registers
+/// (the loops are unrolled in full: input `J`, pixel `P` are literals), which the compiler
+/// did not manage from the portable loops. `_mm512_fmadd_ps` rounds once, like `mul_add`.
+#[cfg(target_arch = "x86_64")]
+#[target_feature(enable = "avx512f")]
+// The unrolled literals make some expressions trivial (`0 * channels`, `J >= J`).
+#[allow(
+    clippy::erasing_op,
+    clippy::eq_op,
+    clippy::identity_op,
+    clippy::absurd_extreme_comparisons,
+    unused_comparisons
+)]
+unsafe fn slide_avx512<const K: usize>(
+    acc: &mut [[f32; LANES]; RUN],
+    row: &[f32],
+    taps_row: &[f32],
+    channels: usize,
+) {
+    use std::arch::x86_64::{__m512, _mm512_fmadd_ps, _mm512_loadu_ps, _mm512_storeu_ps};
+    const { assert!(RUN == 8 && RUN + K - 1 <= 16, "the unrolled ranges below") };
+    let load = |values: &[f32; LANES]| -> __m512 {
+        // SAFETY: 16 f32 in bounds; AVX-512F is enabled for this function.
+        unsafe { _mm512_loadu_ps(values.as_ptr()) }
+    };
+    let taps: [__m512; K] = std::array::from_fn(|kx| load(lanes_at(taps_row, kx * channels)));
+    let mut sums: [__m512; RUN] = std::array::from_fn(|p| load(&acc[p]));
+    seq_macro::seq!(J in 0..16 {
+        if J < RUN + K - 1 {
+            let src = load(lanes_at(row, J * channels));
+            seq_macro::seq!(P in 0..8 {
+                // Input J is tap J - P of pixel P (J ascending: taps in ascending order).
+                if J >= P && J - P < K {
+                    sums[P] = _mm512_fmadd_ps(src, taps[J - P], sums[P]);
+                }
+            });
+        }
+    });
+    for (a, sum) in acc.iter_mut().zip(sums) {
+        // SAFETY: 16 f32 in bounds.
+        unsafe { _mm512_storeu_ps(a.as_mut_ptr(), sum) };
     }
 }
 
@@ -326,6 +429,43 @@ pub(super) fn relu_in_place(values: &mut [f32]) {
 #[cfg(test)]
 mod tests {
     use super::*;
+
+    #[test]
+    fn depthwise_runs_give_the_bits_of_single_pixels_for_every_kernel_size() {
+        let (h, w, c) = (11, 29, 32);
+        let input: Vec<f32> = (0..h * w * c)
+            .map(|i| ((i * 7919) % 61) as f32 / 17.0 - 1.7)
+            .collect();
+        for k in [3, 5, 7, 9] {
+            let taps: Vec<f32> = (0..k * k * c)
+                .map(|i| ((i * 104_729) % 37) as f32 / 29.0 - 0.6)
+                .collect();
+            let mut whole = vec![0f32; h * w * c];
+            depthwise_pixels(&input, h, w, &taps, k, None, None, 0, &mut whole);
+            let half = (k / 2) as isize;
+            for p in 0..h * w {
+                // One pixel at a time never forms a run.
+                let mut single = vec![0f32; c];
+                depthwise_pixels(&input, h, w, &taps, k, None, None, p, &mut single);
+                assert_eq!(single, whole[p * c..(p + 1) * c], "k {k}, pixel {p}");
+                let (y, x) = ((p / w) as isize, (p % w) as isize);
+                for ch in 0..c {
+                    let mut expected = 0f64;
+                    for ky in 0..k as isize {
+                        for kx in 0..k as isize {
+                            let (sy, sx) = (y + ky - half, x + kx - half);
+                            if sy >= 0 && sx >= 0 && sy < h as isize && sx < w as isize {
+                                expected += input[(sy as usize * w + sx as usize) * c + ch] as f64
+                                    * taps[(ky as usize * k + kx as usize) * c + ch] as f64;
+                            }
+                        }
+                    }
+                    let got = whole[p * c + ch] as f64;
+                    assert!((got - expected).abs() < 1e-4, "k {k}: {got} vs {expected}");
+                }
+            }
+        }
+    }
 
     #[test]
     fn depthwise_pixels_equal_a_direct_convolution_at_every_border() {

@@ -42,6 +42,15 @@ struct HostSampleTrace {
     decoder: super::host_decoder::HostTrace,
 }
 
+/// Where one sample's maps go in its batch's: sample `index` of `samples`, `per_sample`
+/// values each.
+#[derive(Clone, Copy)]
+struct BatchMaps {
+    index: usize,
+    samples: usize,
+    per_sample: usize,
+}
+
 /// One search sample's inputs: the normalised image `[3, height, width]` (planar) and its
 /// template's kernels `[channels, k, k]`.
 struct SampleInput<'a> {
@@ -63,7 +72,10 @@ impl HostSearch {
     }
 
     /// One search sample: `image` planar `[3, height, width]`, `kernels` `[channels, k, k]`
-    /// → its maps `[5, 4h, 4w]` (planes) in `maps`, and the intermediates when `trace`.
+    /// → its maps `[5, 4h, 4w]` (planes) as sample `index` of `maps`, and the intermediates
+    /// when `trace`. `maps` holds the whole batch's maps; an empty one is taken from the pool
+    /// once the backbone's features are back there (a large frame's features buffer then
+    /// holds its maps: the two are never needed at once).
     #[allow(clippy::too_many_arguments)]
     fn sample(
         &self,
@@ -74,7 +86,8 @@ impl HostSearch {
         k: usize,
         trace: bool,
         pose: PoseHeads,
-        maps: &mut [f32],
+        maps: &mut Vec<f32>,
+        maps_for: BatchMaps,
     ) -> Option<HostSampleTrace> {
         // Concurrent samples each take what the pool holds (possibly nothing), never wait.
         let mut pool =
@@ -87,9 +100,9 @@ impl HostSearch {
             k,
         };
         let trace = if self.decoder.takes_bf16() {
-            self.sample_with::<u16>(sample, trace, pose, &mut pool, maps)
+            self.sample_with::<u16>(sample, trace, pose, &mut pool, (maps, maps_for))
         } else {
-            self.sample_with::<f32>(sample, trace, pose, &mut pool, maps)
+            self.sample_with::<f32>(sample, trace, pose, &mut pool, (maps, maps_for))
         };
         self.pool
             .lock()
@@ -105,7 +118,7 @@ impl HostSearch {
         trace: bool,
         pose: PoseHeads,
         pool: &mut BufferPool,
-        maps: &mut [f32],
+        (maps, maps_for): (&mut Vec<f32>, BatchMaps),
     ) -> Option<HostSampleTrace> {
         let SampleInput {
             image,
@@ -128,6 +141,10 @@ impl HostSearch {
             pool.give(out.features);
             (correlation, None)
         };
+        if maps.is_empty() {
+            *maps = pool.take::<f32>(maps_for.samples * maps_for.per_sample);
+        }
+        let maps = &mut maps[maps_for.index * maps_for.per_sample..][..maps_for.per_sample];
         let decoder = self
             .decoder
             .forward(correlation, h, w, trace, pose, pool, maps);
@@ -208,6 +225,17 @@ impl InferenceNetwork {
         }
     }
 
+    /// Takes back the values of maps this network returned (`MatchMaps::stacked`, read out)
+    /// once the caller is done with them, for the next search's maps or activations.
+    pub fn recycle(&self, values: Vec<f32>) {
+        if let Some(host) = &self.host {
+            host.pool
+                .lock()
+                .unwrap_or_else(PoisonError::into_inner)
+                .give(values);
+        }
+    }
+
     /// The arithmetic of the search branch's products.
     pub fn precision(&self) -> Precision {
         self.host
@@ -274,8 +302,11 @@ impl InferenceNetwork {
         let image_len = planes * height * width;
         let kernel_len = channels * k * k;
         let (h, w) = (height / 4, width / 4);
-        let mut maps = vec![0f32; batch * 5 * 16 * h * w];
-        for (i, maps) in maps.chunks_exact_mut(5 * 16 * h * w).enumerate() {
+        // Every value is written (the pose heads' skipped pixels hold NaN), so the maps may
+        // come from the pool: a caller that hands them back ([`InferenceNetwork::recycle`])
+        // keeps a large frame's 20 bytes per pixel from being allocated anew every frame.
+        let mut maps = Vec::new();
+        for i in 0..batch {
             host.sample(
                 &images[i * image_len..(i + 1) * image_len],
                 height,
@@ -284,7 +315,12 @@ impl InferenceNetwork {
                 k,
                 false,
                 pose,
-                maps,
+                &mut maps,
+                BatchMaps {
+                    index: i,
+                    samples: batch,
+                    per_sample: 5 * 16 * h * w,
+                },
             );
         }
         MatchMaps {
@@ -308,11 +344,9 @@ impl InferenceNetwork {
         let image_len = planes * height * width;
         let kernel_len = channels * k * k;
         let (h, w) = (height / 4, width / 4);
-        let mut maps = vec![0f32; batch * 5 * 16 * h * w];
-        let traces: Vec<HostSampleTrace> = maps
-            .chunks_exact_mut(5 * 16 * h * w)
-            .enumerate()
-            .map(|(i, maps)| {
+        let mut maps = Vec::new();
+        let traces: Vec<HostSampleTrace> = (0..batch)
+            .map(|i| {
                 host.sample(
                     &images[i * image_len..(i + 1) * image_len],
                     height,
@@ -321,7 +355,12 @@ impl InferenceNetwork {
                     k,
                     true,
                     PoseHeads::Everywhere,
-                    maps,
+                    &mut maps,
+                    BatchMaps {
+                        index: i,
+                        samples: batch,
+                        per_sample: 5 * 16 * h * w,
+                    },
                 )
                 .expect("traced")
             })
