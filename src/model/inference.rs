@@ -216,9 +216,9 @@ impl InferenceNetwork {
 
     /// Frees the activation buffers the host kernels keep between samples (they let the tiles
     /// of a frame, and frames that follow each other, reuse memory instead of faulting in and
-    /// zeroing fresh pages: 7 % of a large frame). They grow to the largest tile seen (a
-    /// 1024x1024 tile: a few hundred MB) and stay until this is called; the service calls it
-    /// when its model thread has been idle for a second.
+    /// zeroing fresh pages: 7 % of a large frame). They grow to the largest piece seen (a
+    /// 2048x2048 frame's 1930² pixels at bf16: about 400 MB, its maps included) and stay until
+    /// this is called; the service calls it when its model thread has been idle for a second.
     pub fn release_buffers(&self) {
         if let Some(host) = &self.host {
             *host.pool.lock().unwrap_or_else(PoisonError::into_inner) = BufferPool::default();
