@@ -182,17 +182,31 @@ impl Conv3x3 {
         matmul_bias(patches, pixels, k, &self.matrix, n, &self.bias, out);
     }
 
-    /// [`Conv3x3::forward`] with the output in the next layer's element type `U`, converted
-    /// chunk by chunk while in cache (no f32 copy of the whole output).
-    fn forward_converted<T: Patch, U: Pooled>(
+    /// The convolution over a whole channels-last image: `[h * w, cin]` → `[h * w, cout]` in
+    /// `U` (a pooled buffer).
+    fn forward<T: Patch, U: Pooled>(
         &self,
         input: &[T],
         height: usize,
         width: usize,
         pool: &mut BufferPool,
     ) -> Vec<U> {
+        self.forward_rows(input, height, width, 0..height, pool)
+    }
+
+    /// Output rows `rows` of the convolution over a whole channels-last image `[h * w, cin]`:
+    /// `[rows.len() * w, cout]` (a pooled buffer) in the next layer's element type `U`,
+    /// converted chunk by chunk while in cache (no f32 copy of the whole output).
+    fn forward_rows<T: Patch, U: Pooled>(
+        &self,
+        input: &[T],
+        height: usize,
+        width: usize,
+        rows: std::ops::Range<usize>,
+        pool: &mut BufferPool,
+    ) -> Vec<U> {
         let chunk_rows = self.chunk_rows::<T>(width);
-        let mut out = pool.take::<U>(height * width * self.cout);
+        let mut out = pool.take::<U>(rows.len() * width * self.cout);
         out.par_chunks_mut(chunk_rows * width * self.cout)
             .enumerate()
             .for_each_init(
@@ -203,50 +217,12 @@ impl Conv3x3 {
                     )
                 },
                 |(patches, values), (chunk, out)| {
-                    let y0 = chunk * chunk_rows;
-                    let n = (height - y0).min(chunk_rows);
+                    let y0 = rows.start + chunk * chunk_rows;
+                    let n = (rows.end - y0).min(chunk_rows);
                     self.im2col(input, height, width, y0, n, patches);
                     let values = &mut values[..n * width * self.cout];
                     T::multiply(self, patches, n * width, values);
                     U::convert_into(values, out);
-                },
-            );
-        out
-    }
-
-    /// The convolution over a whole channels-last image: `[h * w, cin]` → `[h * w, cout]`
-    /// (a pooled buffer).
-    fn forward<T: Patch>(
-        &self,
-        input: &[T],
-        height: usize,
-        width: usize,
-        pool: &mut BufferPool,
-    ) -> Vec<f32> {
-        self.forward_rows(input, height, width, 0..height, pool)
-    }
-
-    /// Output rows `rows` of the convolution over a whole channels-last image `[h * w, cin]`:
-    /// `[rows.len() * w, cout]` (a pooled buffer).
-    fn forward_rows<T: Patch>(
-        &self,
-        input: &[T],
-        height: usize,
-        width: usize,
-        rows: std::ops::Range<usize>,
-        pool: &mut BufferPool,
-    ) -> Vec<f32> {
-        let chunk_rows = self.chunk_rows::<T>(width);
-        let mut out = pool.take::<f32>(rows.len() * width * self.cout);
-        out.par_chunks_mut(chunk_rows * width * self.cout)
-            .enumerate()
-            .for_each_init(
-                || vec![T::default(); T::rows_for(chunk_rows * width) * T::row_len(self)],
-                |patches, (chunk, out)| {
-                    let y0 = rows.start + chunk * chunk_rows;
-                    let n = (rows.end - y0).min(chunk_rows);
-                    self.im2col(input, height, width, y0, n, patches);
-                    T::multiply(self, patches, n * width, out);
                 },
             );
         out
@@ -506,13 +482,10 @@ impl HostDecoder {
         maps: &mut [f32],
     ) -> Option<HostTrace> {
         let (fused, fusion) = if trace {
-            let fusion = self.fusion.forward(&correlation, h, w, pool);
+            let fusion: Vec<f32> = self.fusion.forward(&correlation, h, w, pool);
             (converted::<T>(&fusion, pool), Some(fusion))
         } else {
-            let fused = self
-                .fusion
-                .forward_converted::<T, T>(&correlation, h, w, pool);
-            (fused, None)
+            (self.fusion.forward(&correlation, h, w, pool), None)
         }; // [h, w, 96]
         pool.give(correlation);
         let (input, bn1) = self.conv1_shuffled(&fused, h, w, trace, pool); // [2h, 2w, 48]
@@ -544,7 +517,7 @@ impl HostDecoder {
         let band = tail_band_rows(h, w, cout);
         for y0 in (0..h).step_by(band) {
             let y1 = (y0 + band).min(h);
-            let x = self.conv1.forward_rows(input, h, w, y0..y1, pool);
+            let x: Vec<f32> = self.conv1.forward_rows(input, h, w, y0..y1, pool);
             if let Some(bn1) = &mut bn1 {
                 bn1.extend_from_slice(&x);
             }
@@ -553,16 +526,14 @@ impl HostDecoder {
         }
         (shuffled, bn1)
     }
-}
 
-impl HostDecoder {
     /// conv2 (+ BatchNorm) → ReLU + PixelShuffle → heads over `input` (`[h * w, 48]`, half
     /// resolution) → the five full-resolution planes in `maps`; conv2's output when `trace`.
     ///
-    /// Band by band of `band` half-resolution rows, so the two largest activations of the network (conv2's 96
-    /// channels at half resolution, the heads' 24 at full resolution: about 0.14 KB per
-    /// network pixel at bf16) exist only for one band at a time and stay in cache from one
-    /// layer to the next. The heads' 3x3 convolution reads one row beyond each band: the last
+    /// Band by band of `band` half-resolution rows, so the two largest activations of the
+    /// network (conv2's 96 channels at half resolution, the heads' 24 at full resolution:
+    /// about 0.14 KB per network pixel at bf16) exist only for one band at a time and stay in
+    /// cache from one layer to the next. The heads' 3x3 convolution reads one row beyond each band: the last
     /// two full-resolution rows of a band are carried into the next, and each band's heads
     /// stop one row short of its end (the last band runs to the bottom edge), so every value
     /// is computed once and equals the whole-image computation.
@@ -587,7 +558,7 @@ impl HostDecoder {
         let (mut carried, mut done) = (0, 0);
         for y0 in (0..height).step_by(band) {
             let y1 = (y0 + band).min(height);
-            let x = self.conv2.forward_rows(input, height, width, y0..y1, pool);
+            let x: Vec<f32> = self.conv2.forward_rows(input, height, width, y0..y1, pool);
             if let Some(bn2) = &mut bn2 {
                 bn2.extend_from_slice(&x);
             }
@@ -642,20 +613,25 @@ mod tests {
     use super::*;
     use crate::model::TdcmConfig;
 
+    /// `len` standard normal values.
+    fn random_values(len: usize) -> Vec<f32> {
+        Tensor::<1>::random(
+            [len],
+            burn::tensor::Distribution::Normal(0.0, 1.0),
+            &Default::default(),
+        )
+        .into_data()
+        .try_into_vec()
+        .unwrap()
+    }
+
     #[test]
     fn the_tail_band_by_band_equals_the_whole_image_at_once() {
         let device = Default::default();
         let model = TdcmConfig::new().init(&device);
         let decoder = HostDecoder::new(&model.search_matcher);
         let (h, w) = (13, 7);
-        let input: Vec<f32> = Tensor::<1>::random(
-            [h * w * 48],
-            burn::tensor::Distribution::Normal(0.0, 1.0),
-            &device,
-        )
-        .into_data()
-        .try_into_vec()
-        .unwrap();
+        let input = random_values(h * w * 48);
         let mut pool = BufferPool::default();
         let mut run = |band, pose| {
             let mut maps = vec![f32::INFINITY; 5 * 4 * h * w];
@@ -684,14 +660,7 @@ mod tests {
         let device = Default::default();
         let model = TdcmConfig::new().init(&device);
         let decoder = HostDecoder::new(&model.search_matcher);
-        let correlation: Vec<f32> = Tensor::<1>::random(
-            [9 * 11 * 96],
-            burn::tensor::Distribution::Normal(0.0, 1.0),
-            &device,
-        )
-        .into_data()
-        .try_into_vec()
-        .unwrap();
+        let correlation = random_values(9 * 11 * 96);
         let mut pool = BufferPool::default();
         let mut planes = |pose| {
             let mut maps = vec![0f32; 5 * 36 * 44];

@@ -241,6 +241,7 @@ pub(super) fn depthwise_pixels(
     );
     let half = k / 2;
     let pixels = out.len() / channels;
+    let avx512 = has_avx512f();
     let mut i = 0;
     while i < pixels {
         let (y, x) = ((first + i) / width, (first + i) % width);
@@ -265,8 +266,8 @@ pub(super) fn depthwise_pixels(
                     let row = &input[(sy * width + x - half) * channels + block..];
                     let taps_row = &taps[ky * k * channels + block..];
                     match k {
-                        7 => slide::<7>(&mut acc, row, taps_row, channels),
-                        9 => slide::<9>(&mut acc, row, taps_row, channels),
+                        7 => slide::<7>(&mut acc, row, taps_row, channels, avx512),
+                        9 => slide::<9>(&mut acc, row, taps_row, channels, avx512),
                         _ => {
                             for kx in 0..k {
                                 let tap = lanes_at(taps_row, kx * channels);
@@ -315,17 +316,19 @@ fn lanes_at(values: &[f32], at: usize) -> &[f32; LANES] {
 
 /// One kernel row of `K` taps over a run: `acc[p] += Σ_kx row[p + kx] · taps_row[kx]`, each
 /// sum in ascending `kx`, with `row` and `taps_row` `channels` apart per pixel / tap. Each
-/// input vector is loaded once for the (up to `K`) pixels whose window covers it.
+/// input vector is loaded once for the (up to `K`) pixels whose window covers it; `avx512`
+/// ([`has_avx512f`]) picks the register kernel.
 #[inline(always)]
 fn slide<const K: usize>(
     acc: &mut [[f32; LANES]; RUN],
     row: &[f32],
     taps_row: &[f32],
     channels: usize,
+    avx512: bool,
 ) {
     #[cfg(target_arch = "x86_64")]
-    if std::arch::is_x86_feature_detected!("avx512f") {
-        // SAFETY: the CPU has AVX-512F (checked just above).
+    if avx512 {
+        // SAFETY: the CPU has AVX-512F (`avx512` comes from `has_avx512f`).
         unsafe { slide_avx512::<K>(acc, row, taps_row, channels) };
         return;
     }
@@ -341,6 +344,14 @@ fn slide<const K: usize>(
             }
         }
     }
+}
+
+/// Whether this CPU runs [`slide_avx512`].
+fn has_avx512f() -> bool {
+    #[cfg(target_arch = "x86_64")]
+    return std::arch::is_x86_feature_detected!("avx512f");
+    #[cfg(not(target_arch = "x86_64"))]
+    false
 }
 
 /// [`slide`] in AVX-512 registers: eight accumulators and the row's `K` taps stay in registers
