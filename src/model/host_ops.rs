@@ -32,6 +32,18 @@ pub(super) fn matmul_bias(
         lhs.len() >= m * k && out.len() >= m * n && rhs.len() == k * n && bias.len() == n,
         "matmul_bias: operands do not fit [{m}, {k}] x [{k}, {n}]; this is a bug"
     );
+    if m == 1 {
+        // gemm multiplies a single row as a matrix-vector product, which rounds differently
+        // from its kernel for two or more rows; a pixel must get the same bits whether its
+        // chunk holds one pixel or many, so one row goes through the kernel as two.
+        let mut pair = Vec::with_capacity(2 * k);
+        pair.extend_from_slice(&lhs[..k]);
+        pair.extend_from_slice(&lhs[..k]);
+        let mut pair_out = vec![0f32; 2 * n];
+        matmul_bias(&pair, 2, k, rhs, n, bias, &mut pair_out);
+        out[..n].copy_from_slice(&pair_out[..n]);
+        return;
+    }
     for row in out.chunks_exact_mut(n).take(m) {
         row.copy_from_slice(bias);
     }
@@ -440,6 +452,34 @@ pub(super) fn relu_in_place(values: &mut [f32]) {
 #[cfg(test)]
 mod tests {
     use super::*;
+
+    #[test]
+    fn a_row_gets_the_same_bits_whatever_the_number_of_rows() {
+        // The heads' shapes (k 216, n 12 and 60) and a backbone's (k 96, n 384).
+        for (k, n) in [(216, 12), (216, 60), (96, 384)] {
+            let m = 37;
+            let lhs: Vec<f32> = (0..m * k)
+                .map(|i| ((i * 7919) % 103) as f32 / 31.0 - 1.6)
+                .collect();
+            let rhs: Vec<f32> = (0..k * n)
+                .map(|i| ((i * 104_729) % 89) as f32 / 67.0 - 0.65)
+                .collect();
+            let bias: Vec<f32> = (0..n).map(|i| i as f32 / 7.0 - 1.0).collect();
+            let mut all = vec![0f32; m * n];
+            matmul_bias(&lhs, m, k, &rhs, n, &bias, &mut all);
+            for rows in [1, 2, 3, 8, 16] {
+                for first in (0..m - rows).step_by(5) {
+                    let mut some = vec![0f32; rows * n];
+                    matmul_bias(&lhs[first * k..], rows, k, &rhs, n, &bias, &mut some);
+                    assert_eq!(
+                        some,
+                        all[first * n..(first + rows) * n],
+                        "k {k}, n {n}: {rows} rows from row {first}"
+                    );
+                }
+            }
+        }
+    }
 
     #[test]
     fn depthwise_runs_give_the_bits_of_single_pixels_for_every_kernel_size() {
