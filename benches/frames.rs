@@ -15,7 +15,7 @@
 //! thread counts (default `1,2`), `POSEMATCH_BENCH_GRID_SCALES` the objects' sizes on the
 //! network grid to compare (default `1`; see `plan::scale_passes`), `POSEMATCH_BENCH_PRECISION`
 //! the arithmetic of the network's products (default `auto`, as the CLI; `f32,bf16` compares
-//! both where the CPU has a bf16 kernel, AMX tiles or AVX-512 BF16; the table names the one
+//! both where the CPU has bf16 instructions, AMX tiles or AVX-512 BF16; the table names the one
 //! that ran);
 //! `POSEMATCH_BENCH_CLASSICAL=0` skips the classical matcher (24 s, 14 GB).
 
@@ -28,7 +28,7 @@ static ALLOCATOR: mimalloc::MiMalloc = mimalloc::MiMalloc;
 
 use posematch::geometry::{Pose, angle_distance_deg};
 use posematch::imaging::{GrayImage32, InputConvention, RgbImage32};
-use posematch::matcher::{MatchOptions, Matcher, ncc};
+use posematch::matcher::{MatchOptions, Matcher, classical};
 use posematch::model::{Precision, WeightsSource, load_weights, select_device};
 use posematch::synth::{parts_frame, procedural_part};
 
@@ -244,11 +244,11 @@ fn main() {
         let (tw, th) = (case.part.width, case.part.height);
         // The service and the CLI refuse this much classical work (about 2 s is their limit);
         // the benchmark runs it anyway, to compare.
-        if let Err(e) = ncc::check_work(tw, th, frame.width, frame.height, &options) {
+        if let Err(e) = classical::check_work(tw, th, frame.width, frame.height, &options) {
             println!("classical (ncc) on frame2048 would be refused by the service: {e}");
         }
         let start = Instant::now();
-        let poses = ncc::ncc_match(
+        let poses = classical::ncc_match(
             &GrayImage32::from_rgb(&case.part),
             &GrayImage32::from_rgb(&frame),
             &options,

@@ -1,9 +1,9 @@
 //! Network and pipeline speed: template encode, search forward at 224x224 with a 36x36 template
 //! for batch 1/4/8 (criterion reports time per call and pairs/s as elem/s; ms per pair is the
-//! time divided by the batch), decode (up to 56 peaks from random-input maps, min_score 0.05),
+//! time divided by the batch), peak reading (up to 56 peaks from random-input maps, min_score 0.05),
 //! and 224², 1024² and 2048² frames through the whole matcher.
 //!
-//! Uses the official checkpoint from `../shared/reference` when present (so decode sees real
+//! Uses the official checkpoint from `../shared/reference` when present (so peak reading sees real
 //! maps), random weights otherwise (speed does not depend on the values). Before the timings it
 //! prints the network's multiply-adds per pair and this machine's single-precision matmul rate
 //! measured through the same backend, to put GFLOP/s in context.
@@ -21,11 +21,40 @@ use posematch::imaging::GrayImage32;
 use posematch::imaging::{InputConvention, RgbImage32};
 use posematch::matcher::peaks::{MapPlanes, find_peaks, peak_at};
 use posematch::matcher::{MatchOptions, Matcher};
-use posematch::model::{
-    Precision, Tdcm, TdcmConfig, bf16_kernel, load_weights, multiply_adds, product_gflops,
-    select_device,
-};
+use posematch::model::cpu::{bf16, ops::matmul_bias};
+use posematch::model::{Precision, Tdcm, TdcmConfig, load_weights, multiply_adds, select_device};
 use posematch::refine::refine_pose;
+
+/// Single-thread GFLOP/s of an `[m, k] x [k, n]` product (bias included) with the f32 gemm of
+/// the CPU implementation, and with this process's bf16 instructions (`None` without one), printed beside
+/// the machine's peak.
+fn product_gflops(m: usize, k: usize, n: usize) -> (f64, Option<f64>) {
+    let input: Vec<f32> = (0..m * k).map(|i| (i % 7) as f32 * 0.1).collect();
+    let matrix: Vec<f32> = (0..k * n).map(|i| (i % 5) as f32 * 0.1).collect();
+    let bias = vec![0.5f32; n];
+    let mut out = vec![0f32; m * n];
+    let flops = 2.0 * (m * k * n) as f64;
+    let mut rate = |product: &mut dyn FnMut(&mut [f32])| {
+        product(&mut out);
+        let runs = (2e9 / flops).clamp(3.0, 10_000.0) as usize;
+        let start = std::time::Instant::now();
+        for _ in 0..runs {
+            product(&mut out);
+        }
+        flops * runs as f64 / start.elapsed().as_secs_f64() / 1e9
+    };
+    let f32_rate = rate(&mut |out| matmul_bias(&input, m, k, &matrix, n, &bias, out));
+    let bf16_rate = bf16::available().then(|| {
+        let weights = bf16::Bf16Weights::new(&matrix, k, n, &bias);
+        let stride = weights.lhs_stride();
+        let mut lhs = vec![0u16; bf16::padded_rows(m) * stride];
+        for (row, values) in lhs.chunks_exact_mut(stride).zip(input.chunks_exact(k)) {
+            bf16::round_into(values, &mut row[..k]);
+        }
+        rate(&mut |out| bf16::multiply(&lhs, m, &weights, out))
+    });
+    (f32_rate, bf16_rate)
+}
 
 fn model(device: &Device) -> (Tdcm, &'static str) {
     let official =
@@ -75,13 +104,13 @@ fn benches(c: &mut Criterion) {
         2.0 * macs as f64 / 1e9,
         matmul_gflops(&device)
     );
-    // The host kernels' products on one thread, at the shapes of a backbone block's fc1 and
-    // fc2 and of the decoder's conv1 (a 256-pixel chunk), in f32 and with the bf16 kernel.
+    // The CPU implementation' products on one thread, at the shapes of a backbone block's fc1 and
+    // fc2 and of the upsampler's conv1 (a 256-pixel chunk), in f32 and with the bf16 instructions.
     for (m, k, n) in [(256, 96, 384), (256, 384, 96), (256, 864, 192)] {
         let (f32_rate, bf16_rate) = product_gflops(m, k, n);
         println!(
             "product [{m}x{k}]x[{k}x{n}], one thread: f32 {f32_rate:.0} GFLOP/s, bf16 {}",
-            match (bf16_rate, bf16_kernel()) {
+            match (bf16_rate, bf16::instructions()) {
                 (Some(rate), Some(kernel)) => format!("{rate:.0} GFLOP/s ({kernel})"),
                 _ => "not available on this CPU".into(),
             }
@@ -135,9 +164,10 @@ fn benches(c: &mut Criterion) {
             burn::tensor::Distribution::Normal(0.0, 1.0),
             &device,
         );
+        let planar: Vec<f32> = images.into_data().try_into_vec().unwrap();
         let least = 0.5 * posematch::matcher::MatchOptions::default().candidate_threshold;
         group.throughput(Throughput::Elements(1));
-        // The same search with the products in bf16, where this CPU has a bf16 kernel.
+        // The same search with the products in bf16, where this CPU has bf16 instructions.
         let bf16 = match Precision::Bf16.check_machine() {
             Ok(()) => Some(
                 Matcher::new(
@@ -159,17 +189,18 @@ fn benches(c: &mut Criterion) {
             let name = format!("search_224_batch_1_pose_heads_at_peaks{suffix}");
             group.bench_function(name, |b| {
                 b.iter(|| {
-                    let maps = searcher.network().forward_for_peaks(
-                        images.clone(),
+                    let maps = searcher.network().search_maps(
+                        planar.clone(),
+                        [1, 224, 224],
                         encoded.kernel.clone(),
                         posematch::model::PoseHeads::WhereScoreAtLeast(least),
                     );
-                    maps.stacked.into_data()
+                    searcher.network().recycle(maps);
                 })
             });
         }
     }
-    // Decode alone: peaks, sub-pixel centres and parameters from one 224x224 set of maps.
+    // Peak reading alone: peaks, sub-pixel centres and parameters from one 224x224 set of maps.
     let images = Tensor::<4>::random(
         [1, 3, 224, 224],
         burn::tensor::Distribution::Normal(0.0, 1.0),
@@ -193,7 +224,7 @@ fn benches(c: &mut Criterion) {
         scale_y: &maps[4 * n..5 * n],
     };
     group.throughput(Throughput::Elements(1));
-    group.bench_function("decode_224", |b| {
+    group.bench_function("peaks_224", |b| {
         b.iter(|| {
             find_peaks(&planes, 0.05, 56)
                 .into_iter()
@@ -245,7 +276,7 @@ fn benches(c: &mut Criterion) {
         .sample_size(10)
         .measurement_time(Duration::from_secs(10));
     let options = MatchOptions {
-        refine: false,
+        verify: false,
         ..MatchOptions::default()
     }
     .validate()

@@ -13,9 +13,10 @@ static ALLOCATOR: mimalloc::MiMalloc = mimalloc::MiMalloc;
 
 use std::time::{Duration, Instant};
 
+use posematch::config::{Overrides, Settings};
 use posematch::grpc::proto::pose_matcher_client::PoseMatcherClient;
 use posematch::grpc::proto::{self, image::Data};
-use posematch::grpc::{ModelLoader, Overrides, RunningServer, Settings};
+use posematch::grpc::{ModelLoader, RunningServer};
 use posematch::imaging::InputConvention;
 use posematch::matcher::Matcher;
 use posematch::model::{TdcmConfig, select_device};

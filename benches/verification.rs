@@ -22,7 +22,7 @@ use posematch::evaluation::{SUCCESS_IOU, pair_error};
 use posematch::geometry::Pose;
 use posematch::imaging::GrayImage32;
 use posematch::imaging::InputConvention;
-use posematch::matcher::candidates::select;
+use posematch::matcher::selection::select;
 use posematch::matcher::{EncodedTemplate, MatchOptions, MatchTimings, Matcher};
 use posematch::model::{Precision, WeightsSource, load_weights, select_device};
 use posematch::refine::refine_pose;
@@ -67,7 +67,7 @@ fn best_peak(matcher: &Matcher, encoded: &EncodedTemplate, pair: &SyntheticPair)
     let options = MatchOptions {
         max_instances: 1,
         min_score: Some(posematch::evaluation::ANY_PEAK),
-        refine: false,
+        verify: false,
         ..MatchOptions::default()
     }
     .validate()

@@ -12,8 +12,8 @@ use posematch::cli::{ModelArgs, load_model};
 use posematch::evaluation::pair_error;
 use posematch::geometry::Pose;
 use posematch::imaging::GrayImage32;
+use posematch::matcher::verification::Verifier;
 use posematch::matcher::{MatchJob, MatchOptions, ValidOptions};
-use posematch::refine::Verifier;
 use posematch::synth::{Level, PairSpec, PhotoSet, make_pair};
 
 #[derive(Parser)]
@@ -80,11 +80,12 @@ fn main() {
         let verifier = Verifier::new(template, &image, None, |_| true);
         let ok = |p: &Pose| pair_error(p, &truth, 36.0, 36.0).iou >= 0.5;
         // Screen every candidate, rank.
-        let mut screened: Vec<(usize, Pose, posematch::refine::Screened)> = candidates
-            .iter()
-            .enumerate()
-            .map(|(i, c)| (i, *c, verifier.screen(c)))
-            .collect();
+        let mut screened: Vec<(usize, Pose, posematch::matcher::verification::Screened)> =
+            candidates
+                .iter()
+                .enumerate()
+                .map(|(i, c)| (i, *c, verifier.screen(c)))
+                .collect();
         screened.sort_by(|a, b| b.2.score.total_cmp(&a.2.score));
         if screened.is_empty() {
             *tally.entry("no candidates at all").or_default() += 1;

@@ -46,7 +46,7 @@ fn main() {
     let device = select_device().unwrap();
     let model = TdcmConfig::new().init(&device);
     let m = &model.search_matcher;
-    // What the matcher runs: the host CPU kernels on flex/ndarray.
+    // What the matcher runs: the CPU implementation on flex/ndarray.
     let precision = if args.iter().any(|a| a == "--bf16") {
         posematch::model::Precision::Bf16
     } else {
@@ -97,7 +97,7 @@ fn main() {
             block.grn.forward(g.clone())
         });
         let _ = time(&format!("block{i} fused gelu+grn"), runs, || {
-            posematch::model::gelu_grn(
+            posematch::model::cpu::gelu_grn(
                 f1.clone(),
                 block.grn.weight.val(),
                 block.grn.bias.val(),

@@ -40,7 +40,7 @@ Score: the masked zero-mean NCC (cv2.TM_CCOEFF_NORMED with a mask, i.e. the
 Pearson correlation over the pixels covered by the warped template), clipped
 to [0, 1]: score = min(1, max(0, ncc)).  Anti-correlation counts as 0.
 PoseMatch's score is calibrated differently (the ZNCC measured against what an
-unrelated patch reaches by chance; README "What a score means"), so the same
+unrelated patch reaches by chance; docs/accuracy.md "What a score means"), so the same
 --min-score does not mean the same thing for both matchers.
 
 Method

@@ -5,13 +5,15 @@ mod common;
 
 use std::path::Path;
 
-use common::{official_decode, posematch, read_fixture, reference_dir, write_bgr_png};
+use common::{
+    official_decode, posematch, read_fixture, reference_dir, reference_files, write_bgr_png,
+};
+use posematch::geometry::angle_distance_deg;
 use safetensors::SafeTensors;
 use serde_json::Value;
 
 fn angle_diff(a: f64, b: f64) -> f64 {
-    let d = (a - b).rem_euclid(360.0);
-    d.min(360.0 - d)
+    f64::from(angle_distance_deg(a as f32, b as f32))
 }
 
 /// Writes pair `p`'s template and search image as PNGs into `dir`.
@@ -219,7 +221,7 @@ fn malformed_input_fails_with_one_clear_line() {
 
     // A weights file is not needed to reject bad images, but give one when available so the
     // checks run in the order a real call does.
-    let weights = reference_dir().map(|d| d.join("tdcm-official.pth").display().to_string());
+    let weights = reference_files().map(|d| d.join("tdcm-official.pth").display().to_string());
     let cases: [(&str, &str, &str); 6] = [
         ("template.png", "empty.png", "empty"),
         ("template.png", "truncated.png", "corrupt or truncated"),
@@ -281,7 +283,7 @@ fn malformed_input_fails_with_one_clear_line() {
     let (code, _, stderr) =
         posematch(&["match", "--template", t, "--image", i, "--min-score", "7"]);
     assert_eq!(code, 2, "{stderr}");
-    assert!(stderr.contains("min_score"), "{stderr}");
+    assert!(stderr.contains("--min-score 7"), "{stderr}");
     let (code, _, stderr) = posematch(&[
         "match",
         "--template",

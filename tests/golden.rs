@@ -9,13 +9,14 @@ mod common;
 use std::path::PathBuf;
 
 use burn::prelude::*;
+use posematch::geometry::angle_distance_deg;
 use posematch::imaging::InputConvention;
 use posematch::matcher::{MatchJob, MatchOptions, Matcher};
 use posematch::model::WeightsSource;
-use posematch::synth::{Level, PairSpec, PhotoSet, make_pair};
+use posematch::synth::{PhotoSet, make_pair};
 use serde_json::{Value, json};
 
-/// Pixel and heatmap tolerances: the host CPU kernels sum in a machine-dependent order.
+/// Pixel and heatmap tolerances: the CPU implementation sum in a machine-dependent order.
 const POSITION_TOLERANCE: f64 = 0.05;
 const VALUE_TOLERANCE: f64 = 2e-3;
 const ANGLE_TOLERANCE: f64 = 0.5;
@@ -30,15 +31,9 @@ fn current_output() -> Value {
     let matcher = Matcher::new(model, device, InputConvention::ImagenetRgb);
     let photos_dir = common::structured_photo_dir();
     let photos = PhotoSet::load(photos_dir.path(), 224).unwrap();
-    let spec = PairSpec {
-        level: Level::S1_5,
-        template_width: 36,
-        template_height: 36,
-        search_side: 224,
-        min_structure: posematch::synth::DEFAULT_MIN_STRUCTURE,
-    };
+    let spec = common::s1_5_spec();
     let options = MatchOptions {
-        refine: false,
+        verify: false,
         min_score: Some(0.01),
         max_instances: 3,
         ..MatchOptions::default()
@@ -77,8 +72,7 @@ fn close(name: &str, expected: f64, actual: f64) -> bool {
         _ => VALUE_TOLERANCE,
     };
     if name == "angle_deg" {
-        let d = (expected - actual).rem_euclid(360.0);
-        return d.min(360.0 - d) <= tolerance;
+        return f64::from(angle_distance_deg(expected as f32, actual as f32)) <= tolerance;
     }
     (expected - actual).abs() <= tolerance
 }

@@ -7,12 +7,10 @@
 
 mod common;
 
-use burn::prelude::*;
-use common::{read_fixture, reference_dir};
+use common::{fixture_rgb, official_matcher, read_fixture, reference_dir};
 use posematch::geometry::{Pose, angle_distance_deg};
-use posematch::imaging::{InputConvention, RgbImage32};
-use posematch::matcher::{MatchOptions, Matcher, ScaleRange};
-use posematch::model::load_weights;
+use posematch::imaging::RgbImage32;
+use posematch::matcher::{MatchOptions, ScaleRange};
 use safetensors::SafeTensors;
 
 const TRUE_X: f32 = 119.5;
@@ -20,12 +18,12 @@ const TRUE_Y: f32 = 99.5;
 const TRUE_ANGLE: f32 = 30.0;
 
 fn bgr_fixture(st: &SafeTensors, name: &str) -> RgbImage32 {
-    let view = st.tensor(name).unwrap();
-    let (h, w) = (view.shape()[0] as u32, view.shape()[1] as u32);
-    let pixels = view
-        .data()
-        .chunks_exact(3)
-        .flat_map(|p| [p[2], p[1], p[0]].map(|v| v as f32 / 255.0))
+    let rgb = fixture_rgb(st, name);
+    let (w, h) = rgb.dimensions();
+    let pixels = rgb
+        .into_raw()
+        .into_iter()
+        .map(|v| v as f32 / 255.0)
         .collect();
     RgbImage32::new(w, h, pixels)
 }
@@ -86,18 +84,12 @@ fn score(poses: &[Pose], truth: &[(f32, f32)]) -> Score {
     }
 }
 
-fn matcher(dir: &std::path::Path) -> Matcher {
-    let device = Device::flex();
-    let model = load_weights(&dir.join("tdcm-official.pth"), &device).unwrap();
-    Matcher::new(model, device, InputConvention::ImagenetRgb)
-}
-
 #[test]
 fn single_instance_pose_is_close_to_ground_truth() {
     let Some(dir) = reference_dir() else { return };
     let bytes = read_fixture(&dir);
     let st = SafeTensors::deserialize(&bytes).unwrap();
-    let matcher = matcher(&dir);
+    let matcher = official_matcher(&dir);
     let template = matcher
         .encode_template(&bgr_fixture(&st, "b1.template_src_bgr_u8"))
         .unwrap();
@@ -159,10 +151,10 @@ fn tiling_finds_the_same_instances_as_a_whole_pass() {
     }
     .validate()
     .unwrap();
-    let whole = matcher(&dir).with_max_whole_pixels(2_000_000);
+    let whole = official_matcher(&dir).with_max_whole_pixels(2_000_000);
     let template = whole.encode_template(&template_image).unwrap();
     let whole_poses = whole.match_one(&template, &frame, &options).unwrap().poses;
-    let tiled = matcher(&dir).with_max_whole_pixels(600 * 600);
+    let tiled = official_matcher(&dir).with_max_whole_pixels(600 * 600);
     let tiled_poses = tiled.match_one(&template, &frame, &options).unwrap().poses;
     let (w, t) = (score(&whole_poses, &truth), score(&tiled_poses, &truth));
     for (name, s) in [("whole", &w), ("tiled", &t)] {

@@ -7,7 +7,7 @@
 mod common;
 
 use burn::prelude::*;
-use common::{read_f32, reference_dir, tensor, worst};
+use common::{read_f32, read_fixture, reference_dir, tensor, worst};
 use posematch::model::{InferenceNetwork, MatchMaps, Precision, available_backends, load_weights};
 use safetensors::SafeTensors;
 
@@ -68,7 +68,7 @@ fn check_backend(device: &Device, network: &InferenceNetwork, st: &SafeTensors) 
 #[test]
 fn network_reproduces_every_fixture_tensor_on_every_backend() {
     let Some(dir) = reference_dir() else { return };
-    let bytes = std::fs::read(dir.join("tdcm-parity.safetensors")).unwrap();
+    let bytes = read_fixture(&dir);
     let st = SafeTensors::deserialize(&bytes).unwrap();
     let mut failures = Vec::new();
     for backend in available_backends() {
@@ -87,7 +87,7 @@ fn network_reproduces_every_fixture_tensor_on_every_backend() {
         ] {
             let model = load_weights(&dir.join(weights), &device).expect("official weights load");
             let (network, path) = if host {
-                (InferenceNetwork::host(model), "host CPU kernels")
+                (InferenceNetwork::host(model), "CPU implementation")
             } else {
                 (InferenceNetwork::modules(model), "burn modules")
             };
@@ -109,16 +109,19 @@ fn network_reproduces_every_fixture_tensor_on_every_backend() {
 
 /// bf16 computes the same function up to bf16 rounding: on the fixture's pairs its heads stay
 /// within a few hundredths of the authors' outputs and the score peaks where theirs does. Runs
-/// where the CPU has a bf16 kernel (AMX tiles or AVX-512 BF16); elsewhere bf16 is refused
+/// where the CPU has bf16 instructions (AMX tiles or AVX-512 BF16); elsewhere bf16 is refused
 /// (tested in the library) and there is nothing to compare.
 #[test]
-fn bf16_heads_stay_close_to_the_fixture_where_a_bf16_kernel_exists() {
+fn bf16_heads_stay_close_to_the_fixture_where_the_cpu_has_bf16_instructions() {
     let Some(dir) = reference_dir() else { return };
     if Precision::Bf16.check_machine().is_err() {
-        println!("neither AMX tiles nor AVX-512 BF16 on this CPU: bf16 cannot run here");
+        common::not_on_this_machine(
+            "bf16 instructions",
+            "neither AMX tiles nor AVX-512 BF16 on this CPU: bf16 cannot run here",
+        );
         return;
     }
-    let bytes = std::fs::read(dir.join("tdcm-parity.safetensors")).unwrap();
+    let bytes = read_fixture(&dir);
     let st = SafeTensors::deserialize(&bytes).unwrap();
     let device = Device::flex();
     let model = load_weights(&dir.join("tdcm-official.pth"), &device).unwrap();

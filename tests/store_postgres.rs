@@ -59,16 +59,6 @@ async fn poses(
         .map(|r| r.into_inner().poses)
 }
 
-fn same(a: &[proto::Pose], b: &[proto::Pose]) -> bool {
-    a.len() == b.len()
-        && a.iter().zip(b).all(|(p, q)| {
-            (p.x - q.x).abs() < 0.01
-                && (p.y - q.y).abs() < 0.01
-                && (p.angle_deg - q.angle_deg).abs() < 0.01
-                && (p.score - q.score).abs() < 1e-4
-        })
-}
-
 fn replace_request(id: &str, image: Vec<u8>) -> proto::RegisterTemplateRequest {
     proto::RegisterTemplateRequest {
         replace: true,
@@ -95,12 +85,9 @@ async fn health(addr: std::net::SocketAddr) -> i32 {
     health_of(&addr.to_string(), "").await
 }
 
-const SERVING: i32 = tonic_health::pb::health_check_response::ServingStatus::Serving as i32;
-const NOT_SERVING: i32 = tonic_health::pb::health_check_response::ServingStatus::NotServing as i32;
-
 #[tokio::test(flavor = "multi_thread", worker_threads = 2)]
 async fn replicas_share_templates_and_follow_each_others_changes() {
-    let Some(cluster) = PgCluster::start() else {
+    let Some(cluster) = common::postgres_cluster() else {
         return;
     };
     let (a, mut on_a) = replica(&cluster, &[]).await;
@@ -129,10 +116,10 @@ async fn replicas_share_templates_and_follow_each_others_changes() {
         .unwrap();
     let with_y = poses(&mut on_b, "reference-y", &frame).await.unwrap();
     assert!(
-        !same(&with_x, &with_y),
+        !same_poses(&with_x, &with_y),
         "the two templates must answer differently"
     );
-    assert!(same(
+    assert!(same_poses(
         &poses(&mut on_b, "part", &frame).await.unwrap(),
         &with_x
     ));
@@ -154,7 +141,7 @@ async fn replicas_share_templates_and_follow_each_others_changes() {
         async move {
             poses(&mut client, "part", &frame)
                 .await
-                .is_ok_and(|p| same(&p, &want))
+                .is_ok_and(|p| same_poses(&p, &want))
         }
     })
     .await;
@@ -233,7 +220,7 @@ async fn replicas_share_templates_and_follow_each_others_changes() {
 /// is whole: its image hashes to its `content_sha256` and Match can use it.
 #[tokio::test(flavor = "multi_thread", worker_threads = 2)]
 async fn kill_9_during_registrations_loses_no_acknowledged_template() {
-    let Some(cluster) = PgCluster::start() else {
+    let Some(cluster) = common::postgres_cluster() else {
         return;
     };
     let url = cluster.url();
@@ -245,6 +232,7 @@ async fn kill_9_during_registrations_loses_no_acknowledged_template() {
             c.arg("--template-store").arg(&url);
         });
         let client = server.client().await;
+        let (acknowledge, mut acknowledgements) = tokio::sync::mpsc::unbounded_channel::<()>();
         let registering = {
             let mut client = client.clone();
             let first = next;
@@ -256,14 +244,26 @@ async fn kill_9_during_registrations_loses_no_acknowledged_template() {
                         .register_template(register_request(&id, template_png(k)))
                         .await
                     {
-                        Ok(reply) => done.push((id, reply.into_inner().content_sha256)),
+                        Ok(reply) => {
+                            done.push((id, reply.into_inner().content_sha256));
+                            let _ = acknowledge.send(());
+                        }
                         Err(_) => break,
                     }
                 }
                 done
             })
         };
-        tokio::time::sleep(Duration::from_millis(300 + round * 170)).await;
+        // The kill comes after the first acknowledged registration, so every round has some.
+        let first_acknowledged =
+            tokio::time::timeout(Duration::from_secs(60), acknowledgements.recv()).await;
+        assert!(
+            matches!(first_acknowledged, Ok(Some(()))),
+            "round {round}: no registration was acknowledged"
+        );
+        // Deliberate, not a wait for anything: each round's kill lands at another point of the
+        // registrations.
+        tokio::time::sleep(Duration::from_millis(100 + round * 170)).await;
         server.kill9();
         let done = registering.await.unwrap();
         assert!(
@@ -310,7 +310,7 @@ async fn kill_9_during_registrations_loses_no_acknowledged_template() {
 /// restarting the replicas.
 #[tokio::test(flavor = "multi_thread", worker_threads = 2)]
 async fn a_database_restart_is_survived() {
-    let Some(cluster) = PgCluster::start() else {
+    let Some(cluster) = common::postgres_cluster() else {
         return;
     };
     let (a, mut on_a) = replica(&cluster, &[("database_grace_seconds", "600")]).await;
@@ -329,7 +329,7 @@ async fn a_database_restart_is_survived() {
     let cached = poses(&mut on_b, "part", &frame)
         .await
         .expect("a cached template matches while the database is down");
-    assert!(same(&cached, &with_x));
+    assert!(same_poses(&cached, &with_x));
     let refused = on_a
         .register_template(register_request("new", template_png(5)))
         .await
@@ -380,7 +380,7 @@ async fn a_database_restart_is_survived() {
         .await
         .expect("read-through works again");
     let again = poses(&mut on_b, "part", &frame).await.unwrap();
-    assert!(same(&again, &with_x));
+    assert!(same_poses(&again, &with_x));
     // B listens again: a replacement on A reaches B's cache.
     registering
         .register_template(replace_request("part", y))
@@ -392,7 +392,7 @@ async fn a_database_restart_is_survived() {
         async move {
             poses(&mut client, "part", &frame)
                 .await
-                .is_ok_and(|p| same(&p, &want))
+                .is_ok_and(|p| same_poses(&p, &want))
         }
     })
     .await
@@ -415,7 +415,7 @@ async fn a_database_restart_is_survived() {
 /// covers an outage while serving).
 #[tokio::test(flavor = "multi_thread", worker_threads = 2)]
 async fn a_database_that_refuses_fails_the_start_with_its_message() {
-    let Some(cluster) = PgCluster::start() else {
+    let Some(cluster) = common::postgres_cluster() else {
         return;
     };
     let unused = tempfile::tempdir().unwrap();

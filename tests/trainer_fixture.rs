@@ -51,7 +51,7 @@ fn trainer_weights_give_our_network_the_trainers_maps() {
         &InferenceNetwork::host(model.clone()),
         &st,
         &device,
-        "direct, host CPU kernels",
+        "direct, CPU implementation",
     );
     check_maps(
         &InferenceNetwork::modules(model),

@@ -61,7 +61,7 @@ pub struct EvalArgs {
     #[arg(long)]
     pub by_photo: bool,
     /// Objects' size on the network grid relative to the scale plan's (1, what `match` and the
-    /// service run): a measurement knob for choosing the plan, 0.25..=2 (README "Speed").
+    /// service run): a measurement knob for choosing the plan, 0.25..=2 (docs/speed.md).
     #[arg(long, default_value_t = crate::matcher::plan::DEFAULT_GRID_SCALE)]
     pub grid_scale: f32,
     /// Print JSON instead of the table.
@@ -126,7 +126,7 @@ pub fn run(args: EvalArgs) -> Result<(), CliError> {
     };
     // No scale range: the network sees objects at the template's size, as it was trained.
     // Single-instance pairs always hold the object, so the network path takes its best peak
-    // whatever its value (as in the paper and the official decode); multi-instance scenes keep
+    // whatever its value (as in the paper and the official peak reading); multi-instance scenes keep
     // the heatmap threshold of the network path before verification. The verified path runs
     // with the CLI's options.
     let options = MatchOptions {
@@ -143,7 +143,7 @@ pub fn run(args: EvalArgs) -> Result<(), CliError> {
         ..MatchOptions::default()
     }
     .validate()
-    .map_err(CliError::Usage)?;
+    .map_err(|e| CliError::Usage(e.as_flag()))?;
     let network_min_score = if args.multi_instance {
         NETWORK_MIN_SCORE
     } else {
@@ -323,7 +323,7 @@ fn run_ncc(
     let start = Instant::now();
     let (lo, hi) = level.scale_range();
     let ncc_options = MatchOptions {
-        refine,
+        verify: refine,
         // Single pairs always hold the object: take the best candidate whatever its score.
         min_score: Some(if multi_instance {
             options.effective_min_score()
@@ -333,7 +333,7 @@ fn run_ncc(
         scale_range: (hi > lo).then_some(crate::matcher::ScaleRange { min: lo, max: hi }),
         ..options.clone()
     };
-    let poses = crate::matcher::ncc::ncc_match(
+    let poses = crate::matcher::classical::ncc_match(
         &GrayImage32::from_rgb(&pair.template),
         &GrayImage32::from_rgb(&pair.search),
         &ncc_options,

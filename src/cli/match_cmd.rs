@@ -92,12 +92,12 @@ impl MatchArgs {
             max_overlap: self.max_overlap,
             angle_range: self.angle_range,
             scale_range: self.scale_range,
-            refine: !self.no_refine,
+            verify: !self.no_refine,
             method: self.method,
             classical_fallback: !self.verification.no_classical_fallback,
         }
         .validate()
-        .map_err(CliError::Usage)
+        .map_err(|e| CliError::Usage(e.as_flag()))
     }
 }
 
@@ -155,14 +155,14 @@ fn ncc_answer(
     options: &MatchOptions,
 ) -> Result<Vec<crate::geometry::Pose>, crate::matcher::MatchError> {
     crate::matcher::check_pair_sizes(template.width, template.height, image.width, image.height)?;
-    crate::matcher::ncc::check_work(
+    crate::matcher::classical::check_work(
         template.width,
         template.height,
         image.width,
         image.height,
         options,
     )?;
-    Ok(crate::matcher::ncc::ncc_match(
+    Ok(crate::matcher::classical::ncc_match(
         &GrayImage32::from_rgb(template),
         &GrayImage32::from_rgb(image),
         options,
@@ -248,7 +248,8 @@ fn match_line(
                     as usize,
                 ..(**options).clone()
             }
-            .validate()?,
+            .validate()
+            .map_err(|e| e.to_string())?,
         };
         let Some(matcher) = matcher else {
             let template = read_image(&template_path).map_err(|e| e.to_string())?;

@@ -108,7 +108,7 @@ pub struct ModelArgs {
     pub convention: InputConvention,
     /// Arithmetic of the network's large products: `auto` (bf16 where the CPU has Intel AMX
     /// tiles or AVX-512 BF16, else f32), `f32` (exact, the same numbers on every machine) or
-    /// `bf16` (about twice as fast; README "Speed" shows its held-out accuracy).
+    /// `bf16` (about twice as fast; docs/speed.md shows its held-out accuracy).
     #[arg(long, default_value = "auto", value_parser = str::parse::<Precision>)]
     pub precision: Precision,
 }

@@ -2,12 +2,12 @@
 //! configured format, starts the server and drains it on SIGTERM or Ctrl-C.
 
 use std::path::PathBuf;
-use std::time::Duration;
 
 use clap::Args;
 
 use super::CliError;
-use crate::grpc::{LogFormat, ModelLoader, Overrides, RunningServer, Settings};
+use crate::config::{LogFormat, Overrides, Settings};
+use crate::grpc::{ModelLoader, RunningServer};
 use crate::matcher::Matcher;
 use crate::model::{WeightsSource, select_device};
 
@@ -66,7 +66,7 @@ pub fn run(args: ServeArgs) -> Result<(), CliError> {
     };
     let settings = Settings::load(args.config.as_deref(), std::env::vars(), &overrides)
         .map_err(|e| CliError::Usage(e.to_string()))?;
-    init_logging(settings.log_format);
+    init_logging(settings.server.log_format);
     let loader = model_loader(&settings)?;
     let runtime = tokio::runtime::Builder::new_multi_thread()
         .enable_all()
@@ -97,17 +97,15 @@ pub fn run(args: ServeArgs) -> Result<(), CliError> {
             }
         };
         tracing::info!("shutting down; draining in-flight requests");
-        server
-            .shutdown(Duration::from_secs(settings.shutdown_grace_seconds))
-            .await;
+        server.shutdown(settings.server.shutdown_grace).await;
         outcome
     })
 }
 
 /// Checks what can be checked before binding, then defers the (slow) load to the server.
 fn model_loader(settings: &Settings) -> Result<ModelLoader, CliError> {
-    let (convention, precision) = (settings.convention, settings.precision);
-    let weights = settings.weights_source();
+    let (convention, precision) = (settings.engine.convention, settings.engine.precision);
+    let weights = settings.engine.weights.clone();
     if let WeightsSource::File(path) = &weights
         && !path.is_file()
     {

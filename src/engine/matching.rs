@@ -11,7 +11,7 @@ use super::batcher::{BatchError, MatchWork, SubmitError};
 use super::{Engine, EngineError};
 use crate::geometry::Pose;
 use crate::imaging::{GrayImage32, RgbImage32};
-use crate::matcher::{EncodedTemplate, MatchTimings, Method, ValidOptions, ncc};
+use crate::matcher::{EncodedTemplate, MatchTimings, Method, ValidOptions, classical};
 
 /// A rectangle of the search image to restrict the search to.
 #[derive(Debug, Clone, Copy, PartialEq, Eq)]
@@ -131,7 +131,7 @@ impl Engine {
         options: ValidOptions,
         deadline: Option<Instant>,
     ) -> Result<MatchAnswer, EngineError> {
-        ncc::check_work(
+        classical::check_work(
             template.width,
             template.height,
             image.width,
@@ -155,7 +155,7 @@ impl Engine {
         let queue_ms = queued.elapsed().as_secs_f64() * 1e3;
         let start = Instant::now();
         let poses = super::blocking(move || {
-            ncc::ncc_match(&template.gray, &GrayImage32::from_rgb(&image), &options)
+            classical::ncc_match(&template.gray, &GrayImage32::from_rgb(&image), &options)
         })
         .await?;
         Ok(MatchAnswer {

@@ -16,7 +16,7 @@ pub struct Metrics {
     pub latency_seconds: HistogramVec,
     /// Search images per forward pass.
     pub batch_size: Histogram,
-    /// Wall time of each batch on the model thread (network, decoding, refinement).
+    /// Wall time of each batch on the model thread (network, peak reading, verification).
     pub batch_seconds: Histogram,
     /// Match requests waiting for the model.
     pub queue_depth: IntGauge,
@@ -80,7 +80,7 @@ impl Metrics {
         let batch_seconds = Histogram::with_opts(
             HistogramOpts::new(
                 "posematch_batch_duration_seconds",
-                "Model-thread time per batch (network, decoding, refinement)",
+                "Model-thread time per batch (network, peak reading, verification)",
             )
             .buckets(latency_buckets),
         )

@@ -3,22 +3,21 @@
 //! coherent cache, [`kernels`]; [`registry`]) and matching through the batching model thread
 //! ([`matching`]). This file holds what they share: the engine, its start-up and its errors.
 //!
-//! The gRPC layer ([`crate::grpc`]) only converts messages and maps [`EngineError`] to status
+//! The gRPC layer (`grpc/`) only converts messages and maps [`EngineError`] to status
 //! codes; every rule about templates, limits and options lives here or below.
 
 pub mod batcher;
-mod kernels;
 mod matching;
 pub mod metrics;
 mod registry;
 pub mod store;
+mod template_cache;
 
 use std::sync::Arc;
 use std::time::Duration;
 
 use crate::matcher::{MatchError, Matcher};
-use batcher::{Batcher, EncodeError};
-use kernels::KernelCache;
+use batcher::{BatchLimits, Batcher, EncodeError, IDLE_RELEASE};
 pub use matching::{MatchAnswer, Roi};
 pub use metrics::Metrics;
 pub use registry::{
@@ -26,6 +25,7 @@ pub use registry::{
     MAX_TEMPLATE_ID_BYTES,
 };
 use store::{StoreError, StoreEvent, TemplateStore};
+use template_cache::TemplateCache;
 
 /// How the engine is sized.
 #[derive(Debug, Clone)]
@@ -49,11 +49,13 @@ pub enum EngineError {
     #[error("{0}")]
     InvalidArgument(String),
     #[error(
-        "template `{0}` is not registered; register it first (RegisterTemplate) or check the ID with ListTemplates"
+        "template {} is not registered; register it first (RegisterTemplate) or check the ID with ListTemplates",
+        quoted(.0)
     )]
     NotFound(String),
     #[error(
-        "template `{0}` is already registered with a different image; pass replace=true to overwrite it or choose another template_id"
+        "template {} is already registered with a different image; pass replace=true to overwrite it or choose another template_id",
+        quoted(.0)
     )]
     AlreadyExists(String),
     #[error("{0}")]
@@ -71,6 +73,21 @@ pub enum EngineError {
     /// The template store failed (disk, permissions); never the request's fault.
     #[error(transparent)]
     Store(#[from] StoreError),
+}
+
+/// Most characters of a client's text (a template ID, a label) quoted in an error message: a
+/// status message travels in a header, and clients refuse a header of a megabyte.
+pub const MAX_QUOTED_CHARS: usize = 100;
+
+/// `text` in backquotes for an error message: control characters escaped, at most
+/// [`MAX_QUOTED_CHARS`] characters of it, and its length in bytes when cut.
+pub fn quoted(text: &str) -> String {
+    let escaped: String = text.escape_debug().take(MAX_QUOTED_CHARS).collect();
+    if text.escape_debug().nth(MAX_QUOTED_CHARS).is_some() {
+        format!("`{escaped}…` ({} bytes)", text.len())
+    } else {
+        format!("`{escaped}`")
+    }
 }
 
 impl From<EncodeError> for EngineError {
@@ -91,7 +108,7 @@ pub struct Engine {
     /// shared store announces every write, this replica's included, and the count follows
     /// the announcements.
     counts_own_writes: bool,
-    kernels: Arc<KernelCache>,
+    kernels: Arc<TemplateCache>,
     batcher: Batcher,
     /// One classical (NCC) search at a time: each keeps the cores busy for about a second.
     classical: tokio::sync::Semaphore,
@@ -112,7 +129,7 @@ impl Engine {
         metrics: Metrics,
     ) -> Self {
         metrics.templates.set(templates as i64);
-        let kernels = Arc::new(KernelCache::new(
+        let kernels = Arc::new(TemplateCache::new(
             config.cache_size,
             metrics.cache_evictions.clone(),
         ));
@@ -144,8 +161,11 @@ impl Engine {
         }
         let batcher = Batcher::spawn(
             matcher,
-            config.max_batch_size,
-            config.queue_size.max(1),
+            BatchLimits {
+                max_batch_size: config.max_batch_size,
+                queue_size: config.queue_size,
+                idle_release: IDLE_RELEASE,
+            },
             metrics.clone(),
         );
         Self {

@@ -8,8 +8,9 @@ use serde::Serialize;
 
 use crate::geometry::{Pose, angle_distance_deg, rotated_iou};
 use crate::imaging::GrayImage32;
-use crate::matcher::candidates::{answer, select, with_classical_fallback};
+use crate::matcher::selection::select;
 use crate::matcher::{MatchError, MatchJob, MatchOptions, Matcher, Proposal, ValidOptions};
+use crate::matcher::{answer, with_classical_fallback};
 use crate::refine::refine_pose;
 use crate::synth::SyntheticPair;
 
@@ -94,7 +95,7 @@ pub fn match_pair(
     let propose_options = ValidOptions::derived(MatchOptions {
         candidate_threshold: options.candidate_threshold.min(network_min_score),
         max_candidates: budget.max(4 * options.max_instances + 16),
-        refine: true,
+        verify: true,
         ..(**options).clone()
     });
     let job = MatchJob {
@@ -110,7 +111,7 @@ pub fn match_pair(
     let (tw, th) = (pair.template.width as f32, pair.template.height as f32);
     let network_options = MatchOptions {
         min_score: Some(network_min_score),
-        refine: false,
+        verify: false,
         ..(**options).clone()
     };
     let network: Vec<Pose> = select(
@@ -223,7 +224,7 @@ pub fn evaluate_pairs(
 }
 
 /// Heatmap threshold under which the network's best peak is still taken as its answer on
-/// single-instance pairs (they always hold the object, as in the paper and the official decode).
+/// single-instance pairs (they always hold the object, as in the paper and the official peak reading).
 pub const ANY_PEAK: f32 = 0.01;
 
 /// Aggregates per-pair results: `None` means nothing was found.

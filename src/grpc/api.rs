@@ -15,7 +15,7 @@ use super::convert::{
     deadline_of, image_from_proto, options_from_proto, pose_to_proto, status_of, template_info,
 };
 use super::proto::{self, pose_matcher_server::PoseMatcher};
-use crate::engine::{Engine, EngineError, Metrics};
+use crate::engine::{Engine, EngineError, Metrics, quoted};
 use crate::imaging::{ImageLimits, RgbImage32};
 use crate::matcher::{MatchOptions, TEMPLATE_LIMITS, search_limits};
 
@@ -410,7 +410,7 @@ impl PoseMatcher for Api {
                     .map_err(|s| {
                         Status::new(
                             s.code(),
-                            format!("request_id `{request_id}`: {}", s.message()),
+                            format!("request_id {}: {}", quoted(&request_id), s.message()),
                         )
                     });
                 counter.record("MatchStream", received, &result);

@@ -16,7 +16,7 @@ use crate::matcher::{AngleRange, MatchOptions, Method, ScaleRange, ValidOptions}
 /// The one mapping from engine errors to gRPC status codes. Failures of ours (store, internal)
 /// are logged in full and answered without server paths or details.
 pub fn status_of(error: EngineError) -> Status {
-    let message = error.to_string();
+    let message = bounded(error.to_string());
     match error {
         EngineError::InvalidArgument(_) | EngineError::Match(_) => {
             Status::invalid_argument(message)
@@ -26,7 +26,9 @@ pub fn status_of(error: EngineError) -> Status {
         }
         EngineError::NotFound(_) => Status::not_found(message),
         EngineError::AlreadyExists(_) => Status::already_exists(message),
-        EngineError::ResourceExhausted(_) => Status::resource_exhausted(message),
+        EngineError::ResourceExhausted(_) | EngineError::Store(StoreError::Full(_)) => {
+            Status::resource_exhausted(message)
+        }
         EngineError::DeadlineExceeded(_) => Status::deadline_exceeded(message),
         EngineError::Store(_) | EngineError::Internal(_) => {
             tracing::error!(error = %message.escape_debug(), "internal error");
@@ -35,6 +37,23 @@ pub fn status_of(error: EngineError) -> Status {
             )
         }
     }
+}
+
+/// Longest status message sent: messages quote client input at most
+/// [`crate::engine::MAX_QUOTED_CHARS`] characters, so only a bug could reach this; a status
+/// travels in a header, and clients refuse large ones.
+const MAX_STATUS_MESSAGE_BYTES: usize = 2048;
+
+fn bounded(mut message: String) -> String {
+    if message.len() > MAX_STATUS_MESSAGE_BYTES {
+        let mut end = MAX_STATUS_MESSAGE_BYTES;
+        while !message.is_char_boundary(end) {
+            end -= 1;
+        }
+        message.truncate(end);
+        message.push('…');
+    }
+    message
 }
 
 /// Decodes a request's image. `what` names the field in errors ("image", "template image");
@@ -112,32 +131,46 @@ fn raw_to_rgb(
 }
 
 /// Options with `defaults` (the service's settings) for zero values; anything out of range is
-/// an error that names the field.
+/// an error that names the field. Every field of the message is taken apart here by name, so a
+/// field added to the proto does not compile until it is handled.
 pub fn options_from_proto(
     options: Option<proto::MatchOptions>,
     defaults: &MatchOptions,
 ) -> Result<(ValidOptions, Option<Roi>), EngineError> {
-    let o = options.unwrap_or_default();
+    let proto::MatchOptions {
+        max_instances,
+        min_score,
+        max_overlap,
+        angle_start_deg,
+        angle_extent_deg,
+        scale_min,
+        scale_max,
+        no_refine,
+        roi,
+        candidate_threshold,
+        max_candidates,
+        method,
+        no_classical_fallback,
+    } = options.unwrap_or_default();
     let invalid = |m: String| Err(EngineError::InvalidArgument(m));
     let finite = [
-        ("min_score", o.min_score),
-        ("candidate_threshold", o.candidate_threshold),
-        ("max_overlap", o.max_overlap),
-        ("angle_start_deg", o.angle_start_deg),
-        ("angle_extent_deg", o.angle_extent_deg),
-        ("scale_min", o.scale_min),
-        ("scale_max", o.scale_max),
+        ("min_score", min_score),
+        ("candidate_threshold", candidate_threshold),
+        ("max_overlap", max_overlap),
+        ("angle_start_deg", angle_start_deg),
+        ("angle_extent_deg", angle_extent_deg),
+        ("scale_min", scale_min),
+        ("scale_max", scale_max),
     ];
     if let Some((name, value)) = finite.iter().find(|(_, v)| !v.is_finite()) {
         return invalid(format!("options.{name} is {value}; give a finite number"));
     }
-    if !(-360.0..=360.0).contains(&o.angle_start_deg) {
+    if !(-360.0..=360.0).contains(&angle_start_deg) {
         return invalid(format!(
-            "options.angle_start_deg {} is out of range: give degrees in [-360, 360]",
-            o.angle_start_deg
+            "options.angle_start_deg {angle_start_deg} is out of range: give degrees in [-360, 360]"
         ));
     }
-    let angle_range = match o.angle_extent_deg {
+    let angle_range = match angle_extent_deg {
         0.0 => None,
         e if !(0.0..=360.0).contains(&e) => {
             return invalid(format!(
@@ -145,11 +178,11 @@ pub fn options_from_proto(
             ));
         }
         e => Some(AngleRange {
-            start_deg: o.angle_start_deg,
+            start_deg: angle_start_deg,
             extent_deg: e,
         }),
     };
-    let scale_range = match (o.scale_min, o.scale_max) {
+    let scale_range = match (scale_min, scale_max) {
         (a, b) if a == 0.0 && b == 0.0 => None,
         (a, b) if a == 0.0 || b == 0.0 => {
             return invalid(format!(
@@ -160,41 +193,33 @@ pub fn options_from_proto(
             EngineError::InvalidArgument(format!("options.scale_min/scale_max: {m}"))
         })?),
     };
+    let or_default = |given: f32, default: f32| if given == 0.0 { default } else { given };
     let options = MatchOptions {
-        max_instances: match o.max_instances {
+        max_instances: match max_instances {
             0 => defaults.max_instances,
             n => n as usize,
         },
-        min_score: if o.min_score == 0.0 {
+        min_score: if min_score == 0.0 {
             defaults.min_score
         } else {
-            Some(o.min_score)
+            Some(min_score)
         },
-        max_overlap: if o.max_overlap == 0.0 {
-            defaults.max_overlap
-        } else {
-            o.max_overlap
-        },
-        candidate_threshold: if o.candidate_threshold == 0.0 {
-            defaults.candidate_threshold
-        } else {
-            o.candidate_threshold
-        },
-        max_candidates: match o.max_candidates {
+        max_overlap: or_default(max_overlap, defaults.max_overlap),
+        candidate_threshold: or_default(candidate_threshold, defaults.candidate_threshold),
+        max_candidates: match max_candidates {
             0 => defaults.max_candidates,
             n => n as usize,
         },
         angle_range,
         scale_range,
-        refine: !o.no_refine,
-        classical_fallback: defaults.classical_fallback && !o.no_classical_fallback,
-        method: match proto::Method::try_from(o.method) {
+        verify: !no_refine,
+        classical_fallback: defaults.classical_fallback && !no_classical_fallback,
+        method: match proto::Method::try_from(method) {
             Ok(proto::Method::Unspecified | proto::Method::Tdcm) => Method::Tdcm,
             Ok(proto::Method::Ncc) => Method::Ncc,
             Err(_) => {
                 return invalid(format!(
-                    "options.method {} is unknown: use METHOD_TDCM (1) or METHOD_NCC (2)",
-                    o.method
+                    "options.method {method} is unknown: use METHOD_TDCM (1) or METHOD_NCC (2)"
                 ));
             }
         },
@@ -202,7 +227,7 @@ pub fn options_from_proto(
     let options = options
         .validate()
         .map_err(|m| EngineError::InvalidArgument(format!("options.{m}")))?;
-    let roi = o.roi.and_then(|r| {
+    let roi = roi.and_then(|r| {
         (r.width != 0 || r.height != 0 || r.x != 0 || r.y != 0).then_some(Roi {
             x: r.x,
             y: r.y,

@@ -8,7 +8,6 @@
 mod api;
 pub mod convert;
 pub mod security;
-pub mod settings;
 
 use std::net::SocketAddr;
 use std::sync::{Arc, OnceLock};
@@ -18,11 +17,11 @@ use tokio::net::TcpListener;
 use tokio::sync::watch;
 use tokio_stream::wrappers::TcpListenerStream;
 
+use crate::config::Settings;
 use crate::engine::store::{StoreError, StoreLocation, TemplateStore};
 use crate::engine::{Engine, EngineConfig, Metrics};
 use crate::matcher::Matcher;
 pub use security::AccessTokens;
-pub use settings::{LogFormat, Overrides, Settings};
 
 /// Generated messages and service traits of `proto/posematch/v1/posematch.proto`.
 pub mod proto {
@@ -50,6 +49,9 @@ pub enum ServeError {
         #[source]
         source: std::io::Error,
     },
+    /// A TLS or token file cannot be used.
+    #[error(transparent)]
+    Security(#[from] security::SecurityFileError),
     #[error("{0}")]
     Setup(String),
 }
@@ -70,39 +72,35 @@ impl RunningServer {
     /// model in the background.
     pub async fn start(settings: &Settings, loader: ModelLoader) -> Result<Self, ServeError> {
         // Security files first: a wrong path fails the start, not the first client.
-        let tls = security::tls_config(
-            &settings.tls_cert,
-            &settings.tls_key,
-            &settings.tls_client_ca,
-        )
-        .map_err(ServeError::Setup)?;
-        let tokens = if settings.auth_tokens_file.as_os_str().is_empty() {
-            None
-        } else {
-            Some(AccessTokens::load(&settings.auth_tokens_file).map_err(ServeError::Setup)?)
-        };
-        let listener = TcpListener::bind(&settings.listen)
-            .await
-            .map_err(|source| ServeError::Bind {
-                addr: settings.listen.clone(),
+        let security = &settings.security;
+        let tls = security
+            .tls
+            .as_ref()
+            .map(security::tls_config)
+            .transpose()?;
+        let tokens = security
+            .auth_tokens_file
+            .as_deref()
+            .map(AccessTokens::load)
+            .transpose()?;
+        let server = &settings.server;
+        let bind_error = |addr: SocketAddr| {
+            move |source| ServeError::Bind {
+                addr: addr.to_string(),
                 source,
-            })?;
-        let grpc_addr = listener.local_addr().map_err(|source| ServeError::Bind {
-            addr: settings.listen.clone(),
-            source,
-        })?;
+            }
+        };
+        let listener = TcpListener::bind(server.listen)
+            .await
+            .map_err(bind_error(server.listen))?;
+        let grpc_addr = listener.local_addr().map_err(bind_error(server.listen))?;
         let metrics = Metrics::new();
         let (shutdown, shutdown_rx) = watch::channel(false);
 
-        let metrics_addr = if settings.metrics_listen.is_empty() {
-            None
-        } else {
-            let listener = TcpListener::bind(&settings.metrics_listen)
+        let metrics_addr = if let Some(address) = server.metrics_listen {
+            let listener = TcpListener::bind(address)
                 .await
-                .map_err(|source| ServeError::Bind {
-                    addr: settings.metrics_listen.clone(),
-                    source,
-                })?;
+                .map_err(bind_error(address))?;
             let addr = listener.local_addr().ok();
             tokio::spawn(serve_metrics(
                 listener,
@@ -110,6 +108,8 @@ impl RunningServer {
                 shutdown_rx.clone(),
             ));
             addr
+        } else {
+            None
         };
 
         let (health, health_service) = tonic_health::server::health_reporter();
@@ -137,12 +137,12 @@ impl RunningServer {
         let api = api::Api::new(
             engine.clone(),
             metrics.clone(),
-            api::ImageDecoder::new(settings.max_image_pixels, settings.max_concurrent_decodes),
-            settings.match_defaults(),
+            api::ImageDecoder::new(server.max_image_pixels, server.max_concurrent_decodes),
+            settings.match_defaults.clone(),
         );
         let pose_matcher = proto::pose_matcher_server::PoseMatcherServer::new(api)
-            .max_decoding_message_size(settings.max_message_bytes)
-            .max_encoding_message_size(settings.max_message_bytes);
+            .max_decoding_message_size(server.max_message_bytes)
+            .max_encoding_message_size(server.max_message_bytes);
 
         let mut builder = tonic::transport::Server::builder();
         let tls_on = tls.is_some();
@@ -151,7 +151,7 @@ impl RunningServer {
                 .tls_config(tls)
                 .map_err(|e| ServeError::Setup(format!("TLS (tls_cert, tls_key): {e}")))?;
         }
-        let reflection = settings.reflection;
+        let reflection = server.reflection;
         let router = builder
             .layer(security::GateLayer {
                 tokens: tokens.clone(),
@@ -171,13 +171,13 @@ impl RunningServer {
 
         let (ready_tx, ready) = watch::channel(None);
         let config = EngineConfig {
-            max_batch_size: settings.max_batch_size,
-            queue_size: settings.queue_size,
-            cache_size: settings.cache_size,
-            database_grace: Duration::from_secs(settings.database_grace_seconds),
-            max_network_pixels: settings.max_network_pixels,
+            max_batch_size: settings.engine.max_batch_size,
+            queue_size: settings.engine.queue_size,
+            cache_size: settings.engine.cache_size,
+            database_grace: settings.store.database_grace,
+            max_network_pixels: settings.engine.max_network_pixels,
         };
-        let location = settings.store_location();
+        let location = settings.store.location.clone();
         tokio::spawn(async move {
             let (opened, loaded) = tokio::join!(
                 open_store(&location, &metrics),
@@ -192,7 +192,7 @@ impl RunningServer {
                     let built =
                         Arc::new(Engine::start(&config, store, templates, matcher, metrics));
                     let _ = engine.set(built.clone());
-                    // Logged once requests can be answered (tests wait for this line).
+                    // Logged once requests can be answered.
                     let arithmetic = precision.arithmetic();
                     tracing::info!(%precision, %arithmetic, "model loaded");
                     report_health(built, health, move || {
@@ -214,7 +214,7 @@ impl RunningServer {
             %grpc_addr,
             metrics_addr = ?metrics_addr,
             tls = tls_on,
-            client_certificates = !settings.tls_client_ca.as_os_str().is_empty(),
+            client_certificates = security.tls.as_ref().is_some_and(|t| t.client_ca.is_some()),
             bearer_tokens = tokens.is_some(),
             reflection,
             "listening"

@@ -17,43 +17,54 @@ use std::task::{Context, Poll};
 use sha2::{Digest, Sha256};
 use tonic::transport::{Certificate, Identity, ServerTlsConfig};
 
+use crate::config::TlsFiles;
 use crate::engine::Metrics;
 
 /// Path prefix of the health service, which never needs a token.
 const HEALTH_PREFIX: &str = "/grpc.health.v1.Health/";
 
-/// The server's TLS configuration from PEM files, or `None` when `cert` is not set. Errors name
-/// the setting and the file.
-pub fn tls_config(
-    cert: &Path,
-    key: &Path,
-    client_ca: &Path,
-) -> Result<Option<ServerTlsConfig>, String> {
-    if cert.as_os_str().is_empty() {
-        return Ok(None);
-    }
-    let read = |setting: &str, path: &Path| {
-        std::fs::read(path)
-            .map_err(|e| format!("{setting} = {}: {e}", path.display()))
-            .and_then(|bytes| {
-                if bytes.windows(11).any(|w| w == b"-----BEGIN ") {
-                    Ok(bytes)
-                } else {
-                    Err(format!(
-                        "{setting} = {}: not a PEM file (expected -----BEGIN ...)",
-                        path.display()
-                    ))
-                }
+/// A security file that cannot be used; the message names the setting and the file.
+#[derive(Debug, thiserror::Error)]
+pub enum SecurityFileError {
+    #[error("{setting} = {}: {source}", path.display())]
+    Unreadable {
+        setting: &'static str,
+        path: PathBuf,
+        #[source]
+        source: std::io::Error,
+    },
+    #[error("{setting} = {}: not a PEM file (expected -----BEGIN ...)", path.display())]
+    NotPem {
+        setting: &'static str,
+        path: PathBuf,
+    },
+}
+
+/// The server's TLS configuration from its PEM files.
+pub fn tls_config(files: &TlsFiles) -> Result<ServerTlsConfig, SecurityFileError> {
+    let read = |setting: &'static str, path: &Path| {
+        let bytes = std::fs::read(path).map_err(|source| SecurityFileError::Unreadable {
+            setting,
+            path: path.to_owned(),
+            source,
+        })?;
+        if bytes.windows(11).any(|w| w == b"-----BEGIN ") {
+            Ok(bytes)
+        } else {
+            Err(SecurityFileError::NotPem {
+                setting,
+                path: path.to_owned(),
             })
+        }
     };
     let mut config = ServerTlsConfig::new().identity(Identity::from_pem(
-        read("tls_cert", cert)?,
-        read("tls_key", key)?,
+        read("tls_cert", &files.cert)?,
+        read("tls_key", &files.key)?,
     ));
-    if !client_ca.as_os_str().is_empty() {
+    if let Some(client_ca) = &files.client_ca {
         config = config.client_ca_root(Certificate::from_pem(read("tls_client_ca", client_ca)?));
     }
-    Ok(Some(config))
+    Ok(config)
 }
 
 /// The accepted bearer tokens, kept as SHA-256 digests (a lookup compares digests, never the
@@ -66,7 +77,7 @@ pub struct AccessTokens {
 
 impl AccessTokens {
     /// Reads `file`: one token per line; blank lines and lines starting with `#` are ignored.
-    pub fn load(file: &Path) -> Result<Self, String> {
+    pub fn load(file: &Path) -> Result<Self, SecurityFileError> {
         let tokens = Self {
             file: file.to_owned(),
             digests: Arc::default(),
@@ -77,9 +88,14 @@ impl AccessTokens {
 
     /// Reads the file again; on an error the tokens in force stay. Returns how many tokens
     /// are now accepted.
-    pub fn reload(&self) -> Result<usize, String> {
-        let text = std::fs::read_to_string(&self.file)
-            .map_err(|e| format!("auth_tokens_file = {}: {e}", self.file.display()))?;
+    pub fn reload(&self) -> Result<usize, SecurityFileError> {
+        let text = std::fs::read_to_string(&self.file).map_err(|source| {
+            SecurityFileError::Unreadable {
+                setting: "auth_tokens_file",
+                path: self.file.clone(),
+                source,
+            }
+        })?;
         let digests: HashSet<[u8; 32]> = text
             .lines()
             .map(str::trim)
@@ -243,11 +259,16 @@ mod tests {
         let dir = tempfile::tempdir().unwrap();
         let junk = dir.path().join("junk.pem");
         std::fs::write(&junk, "not a certificate").unwrap();
-        let none = Path::new("");
-        assert!(tls_config(none, none, none).unwrap().is_none());
-        let missing = tls_config(&dir.path().join("nope.pem"), &junk, none).unwrap_err();
+        let files = |cert: &Path, key: &Path| TlsFiles {
+            cert: cert.to_owned(),
+            key: key.to_owned(),
+            client_ca: None,
+        };
+        let missing = tls_config(&files(&dir.path().join("nope.pem"), &junk))
+            .unwrap_err()
+            .to_string();
         assert!(missing.contains("tls_cert"), "{missing}");
-        let not_pem = tls_config(&junk, &junk, none).unwrap_err();
+        let not_pem = tls_config(&files(&junk, &junk)).unwrap_err().to_string();
         assert!(not_pem.contains("not a PEM"), "{not_pem}");
     }
 }

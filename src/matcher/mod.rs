@@ -1,12 +1,26 @@
-//! Images in, poses out: encodes templates into kernels, plans how each search image is shown to
-//! the network (see [`plan`]), runs the network on batches of same-sized pieces, reads the heatmap
-//! peaks (see [`peaks`]) and maps them back into the public pose convention.
+//! Images in, poses out. This module orchestrates one search, stage by stage:
+//! 1. **network proposals**: encode the template, plan how the image is shown to the network
+//!    ([`plan`]), run it on batches of same-sized pieces, read the heatmap's peaks ([`peaks`])
+//!    as candidate poses in the public convention ([`Matcher::propose`]);
+//! 2. **verification** on the image ([`verification`]): screen every candidate, confirm the best;
+//! 3. **classical fallback** ([`classical`]) when no answer reaches `min_score`: its peaks go
+//!    through the same verification;
+//! 4. **selection** ([`selection`]): ranges, non-maximum suppression, `min_score`,
+//!    `max_instances`.
+//!
+//! Without verification ([`MatchOptions::verify`] off) the network's poses go straight to the
+//! selection, scored by their heatmap value.
 
-pub mod candidates;
-pub mod ncc;
+pub mod classical;
+mod error;
+mod limits;
 pub mod options;
 pub mod peaks;
+#[cfg(test)]
+mod pipeline_tests;
 pub mod plan;
+pub mod selection;
+pub mod verification;
 
 use std::sync::Arc;
 use std::time::Instant;
@@ -14,67 +28,18 @@ use std::time::Instant;
 use burn::prelude::*;
 
 use crate::geometry::Pose;
-use crate::imaging::{GrayImage32, ImageLimits};
+use crate::imaging::GrayImage32;
 use crate::imaging::{InputConvention, RgbImage32, resize_rgb, to_network_input};
 use crate::model::{InferenceNetwork, PoseHeads, Precision, PrecisionError, TEMPLATE_GRID, Tdcm};
-pub use options::{AngleRange, MatchOptions, Method, ScaleRange, ValidOptions};
+pub use error::MatchError;
+pub use limits::{
+    MAX_TEMPLATE_SIDE, MIN_IMAGE_SIDE, MIN_TEMPLATE_SIDE, TEMPLATE_LIMITS, search_limits,
+};
+pub use options::{AngleRange, MatchOptions, Method, OptionsError, ScaleRange, ValidOptions};
 use peaks::{MapPlanes, find_peaks, peak_at};
 use plan::{MAX_NETWORK_PIXELS, MIN_INPUT_SIDE, ScalePass, Tile};
-
-/// Smallest template side we accept (the network sees it on a 36x36 grid; below this there is
-/// nothing to match).
-pub const MIN_TEMPLATE_SIDE: u32 = 8;
-/// Largest template side we accept.
-pub const MAX_TEMPLATE_SIDE: u32 = 512;
-/// Smallest search image side.
-pub const MIN_IMAGE_SIDE: u32 = 32;
-
-/// What a template image may be, checked from its header before any pixel is decoded.
-pub const TEMPLATE_LIMITS: ImageLimits = ImageLimits {
-    max_pixels: MAX_TEMPLATE_SIDE as u64 * MAX_TEMPLATE_SIDE as u64,
-    min_side: MIN_TEMPLATE_SIDE,
-    max_side: MAX_TEMPLATE_SIDE,
-};
-
-/// What a search image may be: at least [`MIN_IMAGE_SIDE`] a side, at most `max_pixels`.
-pub fn search_limits(max_pixels: u64) -> ImageLimits {
-    ImageLimits {
-        max_pixels,
-        min_side: MIN_IMAGE_SIDE,
-        max_side: u32::MAX,
-    }
-}
-
-#[derive(Debug, thiserror::Error)]
-pub enum MatchError {
-    #[error(
-        "template is {width}x{height}; each side must be between {MIN_TEMPLATE_SIDE} and {MAX_TEMPLATE_SIDE} pixels"
-    )]
-    TemplateSize { width: u32, height: u32 },
-    #[error("search image is {width}x{height}; each side must be at least {MIN_IMAGE_SIDE} pixels")]
-    ImageTooSmall { width: u32, height: u32 },
-    #[error(
-        "template ({tw}x{th}) is larger than the search image ({iw}x{ih}); pass a larger image or register a smaller template"
-    )]
-    TemplateLargerThanImage { tw: u32, th: u32, iw: u32, ih: u32 },
-    #[error(
-        "matching a {tw}x{th} template in a {iw}x{ih} image at scales {lo}..{hi} needs {pixels} network pixels, over the budget of {budget} per request; narrow the scale range (scale_min/scale_max) or search a smaller region (roi)"
-    )]
-    TooMuchWork {
-        tw: u32,
-        th: u32,
-        iw: u32,
-        ih: u32,
-        lo: f32,
-        hi: f32,
-        pixels: u64,
-        budget: u64,
-    },
-    #[error(
-        "the classical matcher would score {scorings} template placements here (limit {limit}); crop the image (roi), narrow the angle or scale range, or use the network (method tdcm)"
-    )]
-    ClassicalTooSlow { scorings: u64, limit: u64 },
-}
+use selection::select;
+use verification::verify_candidates;
 
 /// A template after encoding: what the service caches per template ID.
 #[derive(Debug, Clone)]
@@ -262,7 +227,7 @@ impl Matcher {
             .zip(jobs)
             .enumerate()
             .map(|(index, (proposal, job))| {
-                still_wanted(index).then(|| proposal.map(|p| candidates::answer(job, p)))
+                still_wanted(index).then(|| proposal.map(|p| answer(job, p)))
             })
             .collect()
     }
@@ -350,10 +315,6 @@ impl Matcher {
                 .flat_map(|p| std::mem::take(&mut p.planar))
                 .collect()
         };
-        let images = Tensor::from_data(
-            TensorData::new(planar, [batch.len(), 3, height, width]),
-            &self.device,
-        );
         let kernels = Tensor::cat(
             batch
                 .iter()
@@ -361,28 +322,84 @@ impl Matcher {
                 .collect(),
             0,
         );
-        // The decode reads the pose maps at peaks above its threshold (and a peak's neighbours
+        // Peak reading reads the pose maps at peaks above its threshold (and a peak's neighbours
         // above half the peak): the pose heads are needed only there.
         let least = batch
             .iter()
             .map(|p| peak_threshold_and_limit(jobs[p.job].options).0)
             .fold(f32::INFINITY, f32::min);
-        let stacked = self
-            .network
-            .forward_for_peaks(images, kernels, PoseHeads::WhereScoreAtLeast(0.5 * least))
-            .stacked; // [b, 5, H, W]
-        stacked
-            .into_data()
-            .try_into_vec::<f32>()
-            .expect("network output is f32; this is a bug")
+        self.network.search_maps(
+            planar,
+            [batch.len(), height, width],
+            kernels,
+            PoseHeads::WhereScoreAtLeast(0.5 * least),
+        )
     }
 }
 
-/// The least heatmap value of a peak the decode considers, and how many peaks it keeps. With
+/// Turns a job's candidates into its answers: verified, with the classical fallback (see the
+/// module doc), or as the network gave them.
+pub fn answer(job: &MatchJob, proposal: Proposal) -> MatchOutcome {
+    let size = (job.template.width as f32, job.template.height as f32);
+    let mut timings = proposal.timings;
+    let start = Instant::now();
+    let poses = if job.options.verify {
+        let image = GrayImage32::from_rgb(job.image);
+        let verified = verify_candidates(
+            &job.template.gray,
+            size,
+            &image,
+            proposal.candidates,
+            job.options,
+        );
+        timings.refine_ms = verified.confirm_ms;
+        timings.screen_ms = start.elapsed().as_secs_f64() * 1e3 - verified.confirm_ms;
+        let (poses, fallback_ms) = with_classical_fallback(
+            &job.template.gray,
+            &image,
+            verified.poses,
+            job.options,
+            job.options.effective_min_score(),
+        );
+        timings.fallback_ms = fallback_ms;
+        poses
+    } else {
+        let poses = select(proposal.candidates, job.options, size.0, size.1);
+        timings.peaks_ms += start.elapsed().as_secs_f64() * 1e3;
+        poses
+    };
+    MatchOutcome { poses, timings }
+}
+
+/// `answers` and, when none of them reaches `trigger_score` (the caller's `min_score`) and
+/// `options` ask for it, those of the classical fallback ([`classical::fallback_candidates`],
+/// verified like the network's candidates; `network_score` 0), selected together under
+/// `options`; with the milliseconds the fallback took (0 when it did not run).
+pub fn with_classical_fallback(
+    template: &GrayImage32,
+    image: &GrayImage32,
+    answers: Vec<Pose>,
+    options: &MatchOptions,
+    trigger_score: f32,
+) -> (Vec<Pose>, f64) {
+    if !options.classical_fallback || answers.iter().any(|p| p.score >= trigger_score) {
+        return (answers, 0.0);
+    }
+    let start = Instant::now();
+    let mut poses = answers;
+    if let Some(candidates) = classical::fallback_candidates(template, image, options) {
+        let size = (template.width as f32, template.height as f32);
+        poses.extend(verify_candidates(template, size, image, candidates, options).poses);
+        poses = select(poses, options, size.0, size.1);
+    }
+    (poses, start.elapsed().as_secs_f64() * 1e3)
+}
+
+/// The least heatmap value of a peak the peak reading considers, and how many peaks it keeps. With
 /// verification every peak above the low candidate threshold is worth a look (up to the
 /// budget); without it the heatmap value is the answer's score.
 fn peak_threshold_and_limit(options: &ValidOptions) -> (f32, usize) {
-    if options.refine {
+    if options.verify {
         (options.candidate_threshold, options.candidate_budget())
     } else {
         (

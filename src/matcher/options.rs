@@ -91,7 +91,7 @@ pub enum Method {
     #[default]
     Tdcm,
     /// The classical matcher: exhaustive rotation x scale NCC over a pyramid, then the same
-    /// refinement (no weights; seconds per image, see [`super::ncc`]).
+    /// refinement (no weights; seconds per image, see `classical.rs`).
     Ncc,
 }
 
@@ -103,7 +103,8 @@ impl std::str::FromStr for Method {
             "tdcm" => Ok(Self::Tdcm),
             "ncc" => Ok(Self::Ncc),
             other => Err(format!(
-                "method `{other}` is unknown: use `tdcm` (the network) or `ncc` (classical)"
+                "method `{}` is unknown: use `tdcm` (the network) or `ncc` (classical)",
+                other.chars().take(40).collect::<String>().escape_debug()
             )),
         }
     }
@@ -114,13 +115,13 @@ impl std::str::FromStr for Method {
 pub struct MatchOptions {
     /// At most this many poses, best first.
     pub max_instances: usize,
-    /// Answers scoring below this are not reported. With refinement the score is the verified
-    /// similarity of the template at the refined pose (see [`crate::refine::Verifier`]); with
-    /// `refine` off it is the network's heatmap value. `None`: [`DEFAULT_MIN_SCORE`], or
-    /// [`NETWORK_MIN_SCORE`] without refinement ([`MatchOptions::effective_min_score`]).
+    /// Answers scoring below this are not reported. With verification the score is the verified
+    /// similarity of the template at the refined pose (`verification.rs`); with
+    /// `verify` off it is the network's heatmap value. `None`: [`DEFAULT_MIN_SCORE`], or
+    /// [`NETWORK_MIN_SCORE`] without verification ([`MatchOptions::effective_min_score`]).
     pub min_score: Option<f32>,
     /// Peaks of the network's heatmap at or above this are candidates for verification
-    /// (ignored with `refine` off, where `min_score` selects the peaks).
+    /// (ignored with `verify` off, where `min_score` selects the peaks).
     pub candidate_threshold: f32,
     /// Most candidates verified per search (each network tile proposes at most this many and
     /// the best of them all are kept); 0 means [`MatchOptions::candidate_budget`]'s automatic
@@ -131,14 +132,16 @@ pub struct MatchOptions {
     pub angle_range: Option<AngleRange>,
     /// Also steers how the search image is rescaled (see [`crate::matcher`]).
     pub scale_range: Option<ScaleRange>,
-    /// Verify every candidate on the image, refine the survivors and score them by similarity.
-    /// Off: the network's poses and heatmap values as they come (faster, less accurate).
-    pub refine: bool,
+    /// Verify every candidate on the image (screen, then confirm the survivors with refinement),
+    /// score them by similarity, and let the classical fallback search when nothing verifies.
+    /// Off: the network's poses and heatmap values as they come (faster, less accurate; CLI
+    /// `--no-refine`, proto `no_refine`).
+    pub verify: bool,
     /// The network, or the classical NCC matcher.
     pub method: Method,
     /// With verification: when no candidate of the network verifies at `min_score`, search the
     /// image with the classical matcher at the template's expected scale
-    /// ([`super::ncc::fallback_candidates`]; small searches only). Off: the network's candidates
+    /// (`classical::fallback_candidates`; small searches only). Off: the network's candidates
     /// alone (a frame without the part costs no more than one with it).
     pub classical_fallback: bool,
 }
@@ -150,18 +153,18 @@ pub const MAX_INSTANCES_LIMIT: usize = 1000;
 pub const MAX_CANDIDATES_LIMIT: usize = 4000;
 
 /// Default `min_score` on the verified score: at most about 1 % of the answers on
-/// multi-instance scenes of the tuning photos are not objects (README "What a score means").
+/// multi-instance scenes of the tuning photos are not objects (docs/accuracy.md, "What a score means").
 pub const DEFAULT_MIN_SCORE: f32 = 0.9;
 
-/// Default `min_score` on the heatmap value when refinement is off (the network-only path's
+/// Default `min_score` on the heatmap value when verification is off (the network-only path's
 /// threshold before verification existed).
 pub const NETWORK_MIN_SCORE: f32 = 0.5;
 
-/// Default `candidate_threshold` (heatmap value; README "Verified candidates").
+/// Default `candidate_threshold` (heatmap value; docs/verification.md).
 pub const DEFAULT_CANDIDATE_THRESHOLD: f32 = 1e-5;
 
 /// Fewest candidates verified per search by default: a weakly trained network's object is often
-/// among its first few dozen peaks, not first (README "Verified candidates").
+/// among its first few dozen peaks, not first (docs/verification.md).
 pub const MIN_CANDIDATE_BUDGET: usize = 100;
 
 impl Default for MatchOptions {
@@ -174,7 +177,7 @@ impl Default for MatchOptions {
             max_overlap: 0.5,
             angle_range: None,
             scale_range: None,
-            refine: true,
+            verify: true,
             method: Method::Tdcm,
             classical_fallback: true,
         }
@@ -193,7 +196,7 @@ impl MatchOptions {
 
     /// The `min_score` in force: the one given, or the default for the path.
     pub fn effective_min_score(&self) -> f32 {
-        self.min_score.unwrap_or(if self.refine {
+        self.min_score.unwrap_or(if self.verify {
             DEFAULT_MIN_SCORE
         } else {
             NETWORK_MIN_SCORE
@@ -201,44 +204,72 @@ impl MatchOptions {
     }
 
     /// Checks every field; the message says what to change.
-    pub fn validate(self) -> Result<ValidOptions, String> {
+    pub fn validate(self) -> Result<ValidOptions, OptionsError> {
         self.check()?;
         Ok(ValidOptions(self))
     }
 
-    fn check(&self) -> Result<(), String> {
+    fn check(&self) -> Result<(), OptionsError> {
+        let invalid = |field, value: &dyn std::fmt::Display, allowed: String| {
+            Err(OptionsError {
+                field,
+                value: value.to_string(),
+                allowed,
+            })
+        };
         if self.max_instances == 0 || self.max_instances > MAX_INSTANCES_LIMIT {
-            return Err(format!(
-                "max_instances {} is invalid: use 1..={MAX_INSTANCES_LIMIT}",
-                self.max_instances
-            ));
+            return invalid(
+                "max_instances",
+                &self.max_instances,
+                format!("1..={MAX_INSTANCES_LIMIT}"),
+            );
         }
         if let Some(min_score) = self.min_score
             && !(min_score > 0.0 && min_score < 1.0)
         {
-            return Err(format!(
-                "min_score {min_score} is invalid: use a value in (0, 1)"
-            ));
+            return invalid("min_score", &min_score, "a value in (0, 1)".into());
         }
         if !(self.candidate_threshold > 0.0 && self.candidate_threshold < 1.0) {
-            return Err(format!(
-                "candidate_threshold {} is invalid: use a value in (0, 1)",
-                self.candidate_threshold
-            ));
+            return invalid(
+                "candidate_threshold",
+                &self.candidate_threshold,
+                "a value in (0, 1)".into(),
+            );
         }
         if self.max_candidates > MAX_CANDIDATES_LIMIT {
-            return Err(format!(
-                "max_candidates {} is invalid: use 1..={MAX_CANDIDATES_LIMIT}, or 0 for the automatic budget",
-                self.max_candidates
-            ));
+            return invalid(
+                "max_candidates",
+                &self.max_candidates,
+                format!("1..={MAX_CANDIDATES_LIMIT}, or 0 for the automatic budget"),
+            );
         }
         if !(self.max_overlap >= 0.0 && self.max_overlap <= 1.0) {
-            return Err(format!(
-                "max_overlap {} is invalid: use a value in [0, 1]",
-                self.max_overlap
-            ));
+            return invalid("max_overlap", &self.max_overlap, "a value in [0, 1]".into());
         }
         Ok(())
+    }
+}
+
+/// An option out of its range: which one, its value and what is allowed. Each front door words
+/// it its own way (a request's `options.min_score`, a setting's `min_score = …`).
+#[derive(Debug, Clone, PartialEq, thiserror::Error)]
+#[error("{field} {value} is invalid: use {allowed}")]
+pub struct OptionsError {
+    /// The option's name, as in the proto, the settings and the CLI (without dashes).
+    pub field: &'static str,
+    pub value: String,
+    pub allowed: String,
+}
+
+impl OptionsError {
+    /// Worded for the command line: `--max-instances 0 is invalid: use 1..=1000`.
+    pub fn as_flag(&self) -> String {
+        format!(
+            "--{} {} is invalid: use {}",
+            self.field.replace('_', "-"),
+            self.value,
+            self.allowed
+        )
     }
 }
 
@@ -284,8 +315,9 @@ mod tests {
     fn defaults_are_valid_and_each_absurd_field_is_refused_by_name() {
         assert_eq!(*ValidOptions::default(), MatchOptions::default());
         let refused = |options: MatchOptions, field: &str| {
-            let message = options.validate().unwrap_err();
-            assert!(message.starts_with(field), "{field}: {message}");
+            let error = options.validate().unwrap_err();
+            assert_eq!(error.field, field, "{error}");
+            assert!(error.to_string().starts_with(field), "{field}: {error}");
         };
         let d = MatchOptions::default;
         refused(

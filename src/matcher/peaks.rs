@@ -1,9 +1,9 @@
 //! From the five network maps to candidate poses, in the network's own pixel grid.
 //!
-//! The official decode reads everything at the single arg-max pixel and averages the (row, col)
+//! The official peak reading reads everything at the single arg-max pixel and averages the (row, col)
 //! of the >0.5 pixels within 15 px. We find every local maximum; for each one the centre is the
 //! centroid of its neighbourhood weighted by `score − score_peak/2` (sub-pixel, robust to the
-//! plateau shape), and angle and scales are read at the peak pixel as the official decode does.
+//! plateau shape), and angle and scales are read at the peak pixel as the official peak reading does.
 //! (Averaging the angle over the neighbourhood as a circular mean is available as
 //! [`neighbourhood_angle_deg`]; whether it beats the peak reading is for `posematch eval` to
 //! show, so the default stays with the checkpoint authors' reading.)
@@ -31,7 +31,7 @@ pub struct NetworkPeak {
 }
 
 /// Largest radius (network pixels) of the neighbourhood averaged around a peak, as in the
-/// official decode.
+/// official peak reading.
 const MAX_RADIUS: f32 = 15.0;
 /// Local-maximum window half-size.
 const PEAK_WINDOW: usize = 2;

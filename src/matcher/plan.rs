@@ -14,7 +14,7 @@
 //! # Tiling
 //! Up to [`max_whole_pixels`] network pixels run as one piece. Larger inputs run as equal tiles
 //! of side at most [`TILE`] that overlap by `2 x` [`TILE_MARGIN`]; each tile owns only the peaks
-//! in its core, so every object centre is decoded in a tile that holds the whole object (an object
+//! in its core, so every object centre is read in a tile that holds the whole object (an object
 //! at the top of the scale range spans at most 2·36·√2 ≈ 102 px, so a 64 px margin covers half of
 //! it). GRN normalises over the whole feature map, so tiles see slightly different features than
 //! one full pass would; `tests/matching.rs` measures what that costs.
@@ -118,7 +118,7 @@ pub fn scale_passes(
 
 /// Network pixels of a set of passes, padding to [`MIN_INPUT_SIDE`] included: the cost of one
 /// search (about 0.5 µs per pixel on two cores at f32, 0.24 at bf16, refinement included;
-/// README "Compute budget").
+/// docs/service.md, "Compute budget").
 pub fn network_pixels(passes: &[ScalePass]) -> u64 {
     passes
         .iter()

@@ -46,7 +46,7 @@ fn device_by_name(name: &str) -> Result<Device, DeviceError> {
 }
 
 /// Whether tensors on `device` live in host memory without autodiff, so that the host CPU
-/// inference kernels ([`super::InferenceNetwork::host`]) may read and write them directly.
+/// inference code ([`super::InferenceNetwork::host`]) may read and write them directly.
 pub fn is_host_cpu(device: &Device) -> bool {
     if device.is_autodiff() {
         return false;

@@ -1,45 +1,45 @@
 //! The network as the matcher runs it: for answers, not gradients. Built once from loaded
-//! weights, it chooses its kernels then: on the host CPU (flex, ndarray) the channels-last
-//! [`HostBackbone`] and [`HostDecoder`] for the search branch (BatchNorm folded, weights laid
-//! out for the products — once, not per call) and the fused GELU+GRN kernel in the template
-//! branch; anywhere else burn's modules, exactly as training runs them. Both paths compute the
+//! weights, it chooses its implementation then: on the host CPU (flex, ndarray) the implementation of
+//! [`super::cpu`] (BatchNorm folded, weights laid out for the products — once, not per call);
+//! anywhere else the burn modules of [`super::network`], exactly as training runs them. This is
+//! the only file that uses both. Both paths compute the
 //! same function; the parity tests check each one explicitly against the official fixtures.
 
 use std::sync::{Mutex, PoisonError};
 
 use burn::prelude::*;
 
-use super::backbone::{BackboneTrace, GeluGrn};
+use super::cpu::{
+    self, BufferPool, CpuBackbone, CpuUpsampler, Patch, PoseHeads, UpsamplerTrace, converted,
+    correlate,
+};
 use super::device::is_host_cpu;
-use super::host_backbone::{HostBackbone, correlate};
-use super::host_decoder::{HostDecoder, Patch, PoseHeads};
-use super::host_ops::{BufferPool, converted};
-use super::tdcm::{MatchMaps, SearchTrace, Tdcm};
+use super::network::{BackboneTrace, MatchMaps, SearchTrace, Tdcm};
 use super::{Precision, PrecisionError};
 
-/// Loaded weights plus the kernels chosen to run them.
+/// Loaded weights plus the implementation chosen to run them.
 pub struct InferenceNetwork {
     model: Tdcm,
-    /// `Some` when inference runs on the host CPU kernels.
-    host: Option<HostSearch>,
+    /// `Some` when inference runs on the CPU implementation.
+    host: Option<CpuSearch>,
 }
 
-/// The search branch on the host CPU kernels.
-struct HostSearch {
-    backbone: HostBackbone,
-    decoder: HostDecoder,
+/// The search branch on the CPU implementation.
+struct CpuSearch {
+    backbone: CpuBackbone,
+    upsampler: CpuUpsampler,
     precision: Precision,
     /// Activation buffers kept between samples until [`InferenceNetwork::release_buffers`].
     pool: Mutex<BufferPool>,
 }
 
 /// Channels-last intermediates of one sample, for the parity fixtures.
-struct HostSampleTrace {
+struct CpuSampleTrace {
     stem: Vec<f32>,
     stage1: Vec<f32>,
     features: Vec<f32>,
     correlation: Vec<f32>,
-    decoder: super::host_decoder::HostTrace,
+    upsampler: UpsamplerTrace,
 }
 
 /// Where one sample's maps go in its batch's: sample `index` of `samples`, `per_sample`
@@ -61,11 +61,11 @@ struct SampleInput<'a> {
     k: usize,
 }
 
-impl HostSearch {
+impl CpuSearch {
     fn new(model: &Tdcm) -> Self {
         Self {
-            backbone: HostBackbone::new(&model.search_matcher.backbone),
-            decoder: HostDecoder::new(&model.search_matcher),
+            backbone: CpuBackbone::new(&model.search_matcher.backbone),
+            upsampler: CpuUpsampler::new(&model.search_matcher),
             precision: Precision::F32,
             pool: Mutex::default(),
         }
@@ -88,7 +88,7 @@ impl HostSearch {
         pose: PoseHeads,
         maps: &mut Vec<f32>,
         maps_for: BatchMaps,
-    ) -> Option<HostSampleTrace> {
+    ) -> Option<CpuSampleTrace> {
         // Concurrent samples each take what the pool holds (possibly nothing), never wait.
         let mut pool =
             std::mem::take(&mut *self.pool.lock().unwrap_or_else(PoisonError::into_inner));
@@ -99,7 +99,7 @@ impl HostSearch {
             kernels,
             k,
         };
-        let trace = if self.decoder.takes_bf16() {
+        let trace = if self.upsampler.takes_bf16() {
             self.sample_with::<u16>(sample, trace, pose, &mut pool, (maps, maps_for))
         } else {
             self.sample_with::<f32>(sample, trace, pose, &mut pool, (maps, maps_for))
@@ -111,7 +111,7 @@ impl HostSearch {
         trace
     }
 
-    /// [`HostSearch::sample`] with the decoder's activations in `T`.
+    /// [`CpuSearch::sample`] with the upsampler's activations in `T`.
     fn sample_with<T: Patch>(
         &self,
         sample: SampleInput,
@@ -119,7 +119,7 @@ impl HostSearch {
         pose: PoseHeads,
         pool: &mut BufferPool,
         (maps, maps_for): (&mut Vec<f32>, BatchMaps),
-    ) -> Option<HostSampleTrace> {
+    ) -> Option<CpuSampleTrace> {
         let SampleInput {
             image,
             height,
@@ -145,17 +145,17 @@ impl HostSearch {
             *maps = pool.take::<f32>(maps_for.samples * maps_for.per_sample);
         }
         let maps = &mut maps[maps_for.index * maps_for.per_sample..][..maps_for.per_sample];
-        let decoder = self
-            .decoder
+        let upsampler = self
+            .upsampler
             .forward(correlation, h, w, trace, pose, pool, maps);
-        decoder
+        upsampler
             .zip(traced)
-            .map(|(decoder, (features, correlation))| HostSampleTrace {
+            .map(|(upsampler, (features, correlation))| CpuSampleTrace {
                 stem: out.stem.expect("traced"),
                 stage1: out.stage1.expect("traced"),
                 features,
                 correlation,
-                decoder,
+                upsampler,
             })
     }
 }
@@ -175,7 +175,7 @@ fn nchw_tensor(samples: &[&[f32]], h: usize, w: usize, c: usize, device: &Device
 }
 
 impl InferenceNetwork {
-    /// The host CPU kernels when `device` is a host CPU backend without autodiff, burn's
+    /// The CPU implementation when `device` is a host CPU backend without autodiff, burn's
     /// modules otherwise.
     pub fn new(model: Tdcm, device: &Device) -> Self {
         if is_host_cpu(device) {
@@ -185,9 +185,9 @@ impl InferenceNetwork {
         }
     }
 
-    /// The host CPU kernels, whatever the device (they read every tensor into host memory).
+    /// The CPU implementation, whatever the device (they read every tensor into host memory).
     pub fn host(model: Tdcm) -> Self {
-        let host = Some(HostSearch::new(&model));
+        let host = Some(CpuSearch::new(&model));
         Self { model, host }
     }
 
@@ -196,7 +196,7 @@ impl InferenceNetwork {
         Self { model, host: None }
     }
 
-    /// Runs the search branch's large products (backbone pointwise layers, decoder and head
+    /// Runs the search branch's large products (backbone pointwise layers, upsampler and head
     /// convolutions) in `precision` (see [`Precision`]); the template branch stays f32 (its
     /// cost is negligible). Refused where the machine or the device cannot run it.
     pub fn with_precision(mut self, precision: Precision) -> Result<Self, PrecisionError> {
@@ -209,12 +209,12 @@ impl InferenceNetwork {
             };
         };
         host.backbone.set_precision(precision);
-        host.decoder.set_precision(precision);
+        host.upsampler.set_precision(precision);
         host.precision = precision;
         Ok(self)
     }
 
-    /// Frees the activation buffers the host kernels keep between samples (they let the tiles
+    /// Frees the activation buffers the CPU implementation keep between samples (they let the tiles
     /// of a frame, and frames that follow each other, reuse memory instead of faulting in and
     /// zeroing fresh pages: 7 % of a large frame). They grow to the largest piece seen (a
     /// 2048x2048 frame's 1930² pixels at bf16: about 400 MB, its maps included) and stay until
@@ -247,17 +247,9 @@ impl InferenceNetwork {
         &self.model
     }
 
-    /// Whether this network runs the host CPU kernels.
+    /// Whether this network runs the CPU implementation.
     pub fn runs_host_kernels(&self) -> bool {
         self.host.is_some()
-    }
-
-    fn gelu_grn(&self) -> GeluGrn {
-        if self.host.is_some() {
-            GeluGrn::Fused
-        } else {
-            GeluGrn::Modules
-        }
     }
 
     /// Templates → depthwise kernels. See [`super::TemplateEncoder::forward`] for shapes.
@@ -266,13 +258,42 @@ impl InferenceNetwork {
     }
 
     pub fn encode_templates_traced(&self, templates: Tensor<4>) -> (Tensor<4>, BackboneTrace) {
-        self.model
-            .template_encoder
-            .forward_traced(templates, self.gelu_grn())
+        if self.host.is_some() {
+            cpu::encode_templates(&self.model.template_encoder, templates)
+        } else {
+            self.model.template_encoder.forward_traced(templates)
+        }
     }
 
     /// Search images against their kernels → the five maps. See
-    /// [`super::SearchMatcher::forward`] for shapes.
+    /// [`super::SearchBranch::forward`] for shapes.
+    pub fn forward(&self, images: Tensor<4>, kernels: Tensor<4>) -> MatchMaps {
+        let Some(host) = &self.host else {
+            return self.model.search_matcher.forward(images, kernels);
+        };
+        let device = images.device();
+        let [batch, _, height, width] = images.dims();
+        let kernel_side = kernels.dims()[2];
+        let batch = SearchBatch {
+            images: &host_values(images),
+            batch,
+            height,
+            width,
+            kernels: &host_values(kernels),
+            kernel_side,
+        };
+        let maps = host.search(&batch, PoseHeads::Everywhere, false).0;
+        let [h, w] = batch.map_size();
+        MatchMaps {
+            stacked: Tensor::from_data(TensorData::new(maps, [batch.batch, 5, h, w]), &device),
+        }
+    }
+
+    /// The matcher's search: planar images `[batch, 3, height, width]` against their kernels
+    /// `[batch, 96, k, k]` → the five maps as plain values `[batch, 5, 4⌊height/4⌋,
+    /// 4⌊width/4⌋]`, the pose heads evaluated only where `pose` says (on the host CPU; burn's
+    /// modules compute every head). On the host CPU the images go to the kernels as they are,
+    /// with no tensor in between; hand the values back with [`InferenceNetwork::recycle`].
     ///
     /// On the host CPU the samples of a batch run one after another. Every layer is already
     /// compute-bound at batch 1 (its gemms have tens of thousands of rows), so a batch buys no
@@ -280,52 +301,36 @@ impl InferenceNetwork {
     /// (~19 MB at 224x224) spill out of L2/L3 and the memory-bound stages (GELU+GRN,
     /// LayerNorm, residuals) slow by 20-40 % (measured with `examples/profile.rs`), which made a
     /// batch of 4 cost 12 % more per pair than four single passes.
-    pub fn forward(&self, images: Tensor<4>, kernels: Tensor<4>) -> MatchMaps {
-        self.forward_for_peaks(images, kernels, PoseHeads::Everywhere)
-    }
-
-    /// [`InferenceNetwork::forward`] evaluating the pose heads only where `pose` says (on the
-    /// host CPU; other backends compute every head).
-    pub fn forward_for_peaks(
+    pub fn search_maps(
         &self,
-        images: Tensor<4>,
+        images: Vec<f32>,
+        [batch, height, width]: [usize; 3],
         kernels: Tensor<4>,
         pose: PoseHeads,
-    ) -> MatchMaps {
+    ) -> Vec<f32> {
         let Some(host) = &self.host else {
-            return self.model.search_matcher.forward(images, kernels);
+            let device = kernels.device();
+            let images =
+                Tensor::from_data(TensorData::new(images, [batch, 3, height, width]), &device);
+            return self
+                .model
+                .search_matcher
+                .forward(images, kernels)
+                .stacked
+                .into_data()
+                .try_into_vec()
+                .expect("network output is f32; this is a bug");
         };
-        let device = images.device();
-        let [batch, planes, height, width] = images.dims();
-        let [_, channels, k, _] = kernels.dims();
-        let (images, kernels) = (host_values(images), host_values(kernels));
-        let image_len = planes * height * width;
-        let kernel_len = channels * k * k;
-        let (h, w) = (height / 4, width / 4);
-        // Every value is written (the pose heads' skipped pixels hold NaN), so the maps may
-        // come from the pool: a caller that hands them back ([`InferenceNetwork::recycle`])
-        // keeps a large frame's 20 bytes per pixel from being allocated anew every frame.
-        let mut maps = Vec::new();
-        for i in 0..batch {
-            host.sample(
-                &images[i * image_len..(i + 1) * image_len],
-                height,
-                width,
-                &kernels[i * kernel_len..(i + 1) * kernel_len],
-                k,
-                false,
-                pose,
-                &mut maps,
-                BatchMaps {
-                    index: i,
-                    samples: batch,
-                    per_sample: 5 * 16 * h * w,
-                },
-            );
-        }
-        MatchMaps {
-            stacked: Tensor::from_data(TensorData::new(maps, [batch, 5, 4 * h, 4 * w]), &device),
-        }
+        let kernel_side = kernels.dims()[2];
+        let batch = SearchBatch {
+            images: &images,
+            batch,
+            height,
+            width,
+            kernels: &host_values(kernels),
+            kernel_side,
+        };
+        host.search(&batch, pose, false).0
     }
 
     /// Like [`InferenceNetwork::forward`], with every intermediate the parity fixtures store.
@@ -338,34 +343,20 @@ impl InferenceNetwork {
             return self.model.search_matcher.forward_traced(images, kernels);
         };
         let device = images.device();
-        let [batch, planes, height, width] = images.dims();
-        let [_, channels, k, _] = kernels.dims();
-        let (images, kernels) = (host_values(images), host_values(kernels));
-        let image_len = planes * height * width;
-        let kernel_len = channels * k * k;
+        let [batch, _, height, width] = images.dims();
+        let kernel_side = kernels.dims()[2];
+        let batch = SearchBatch {
+            images: &host_values(images),
+            batch,
+            height,
+            width,
+            kernels: &host_values(kernels),
+            kernel_side,
+        };
+        let (maps, traces) = host.search(&batch, PoseHeads::Everywhere, true);
+        let [map_h, map_w] = batch.map_size();
         let (h, w) = (height / 4, width / 4);
-        let mut maps = Vec::new();
-        let traces: Vec<HostSampleTrace> = (0..batch)
-            .map(|i| {
-                host.sample(
-                    &images[i * image_len..(i + 1) * image_len],
-                    height,
-                    width,
-                    &kernels[i * kernel_len..(i + 1) * kernel_len],
-                    k,
-                    true,
-                    PoseHeads::Everywhere,
-                    &mut maps,
-                    BatchMaps {
-                        index: i,
-                        samples: batch,
-                        per_sample: 5 * 16 * h * w,
-                    },
-                )
-                .expect("traced")
-            })
-            .collect();
-        let tensor = |part: fn(&HostSampleTrace) -> &[f32], h: usize, w: usize, c: usize| {
+        let tensor = |part: fn(&CpuSampleTrace) -> &[f32], h: usize, w: usize, c: usize| {
             let parts: Vec<&[f32]> = traces.iter().map(part).collect();
             nchw_tensor(&parts, h, w, c, &device)
         };
@@ -377,12 +368,73 @@ impl InferenceNetwork {
             },
             features: tensor(|t| &t.features, h, w, c),
             correlation: tensor(|t| &t.correlation, h, w, c),
-            fusion: tensor(|t| &t.decoder.fusion, h, w, c),
-            bn1: tensor(|t| &t.decoder.bn1, h, w, 2 * c),
-            bn2: tensor(|t| &t.decoder.bn2, 2 * h, 2 * w, c),
+            fusion: tensor(|t| &t.upsampler.fusion, h, w, c),
+            bn1: tensor(|t| &t.upsampler.bn1, h, w, 2 * c),
+            bn2: tensor(|t| &t.upsampler.bn2, 2 * h, 2 * w, c),
         };
-        let stacked = Tensor::from_data(TensorData::new(maps, [batch, 5, 4 * h, 4 * w]), &device);
+        let stacked = Tensor::from_data(
+            TensorData::new(maps, [batch.batch, 5, map_h, map_w]),
+            &device,
+        );
         (MatchMaps { stacked }, search_trace)
+    }
+}
+
+/// A batch of search samples in host memory: planar images `[batch, 3, height, width]` and
+/// their kernels `[batch, channels, k, k]`.
+struct SearchBatch<'a> {
+    images: &'a [f32],
+    batch: usize,
+    height: usize,
+    width: usize,
+    kernels: &'a [f32],
+    /// Side of each depthwise kernel.
+    kernel_side: usize,
+}
+
+impl SearchBatch<'_> {
+    /// Sides of the maps: `4⌊side/4⌋`.
+    fn map_size(&self) -> [usize; 2] {
+        [self.height / 4 * 4, self.width / 4 * 4]
+    }
+}
+
+impl CpuSearch {
+    /// Every sample of `batch` → the batch's maps (planes, `[batch, 5, H, W]`), and each
+    /// sample's intermediates when `trace`.
+    fn search(
+        &self,
+        batch: &SearchBatch,
+        pose: PoseHeads,
+        trace: bool,
+    ) -> (Vec<f32>, Vec<CpuSampleTrace>) {
+        let image_len = batch.images.len() / batch.batch;
+        let kernel_len = batch.kernels.len() / batch.batch;
+        let [map_h, map_w] = batch.map_size();
+        // Every value is written (the pose heads' skipped pixels hold NaN), so the maps may
+        // come from the pool: a caller that hands them back ([`InferenceNetwork::recycle`])
+        // keeps a large frame's 20 bytes per pixel from being allocated anew every frame.
+        let mut maps = Vec::new();
+        let mut traces = Vec::new();
+        for i in 0..batch.batch {
+            let traced = self.sample(
+                &batch.images[i * image_len..(i + 1) * image_len],
+                batch.height,
+                batch.width,
+                &batch.kernels[i * kernel_len..(i + 1) * kernel_len],
+                batch.kernel_side,
+                trace,
+                pose,
+                &mut maps,
+                BatchMaps {
+                    index: i,
+                    samples: batch.batch,
+                    per_sample: 5 * map_h * map_w,
+                },
+            );
+            traces.extend(traced);
+        }
+        (maps, traces)
     }
 }
 
@@ -400,7 +452,7 @@ mod tests {
         let device = Default::default();
         let model = TdcmConfig::new().init(&device);
         let mut precisions = vec![Precision::F32];
-        if super::super::bf16::available() {
+        if cpu::bf16::available() {
             precisions.push(Precision::Bf16);
         }
         for precision in precisions {

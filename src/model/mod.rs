@@ -1,35 +1,27 @@
-//! The TDCM network in burn: layer for layer the function of the paper's official checkpoint
-//! (see `../shared/reference/README.md`), split into a template encoder and a search matcher,
-//! plus weight loading and backend selection. No images, no poses: tensors in, tensors out.
+//! The TDCM network, in two implementations of one function:
+//! - [`network`]: burn modules, layer for layer the paper's checkpoint — the reference, and what
+//!   training (autodiff) and other backends run;
+//! - [`cpu`]: written by hand for serving speed on the host CPU, held to parity with the
+//!   reference by the fixtures (`tests/parity.rs`).
+//!
+//! [`InferenceNetwork`] is the one place that chooses between them. No images, no poses here.
 
-mod backbone;
-mod bf16;
-pub use bf16::{Bf16Kernel, kernel as bf16_kernel, product_gflops};
 mod cost;
+pub mod cpu;
 mod device;
-mod fused;
-mod host_backbone;
-pub use fused::gelu_grn;
-mod host_decoder;
-mod host_ops;
-pub use host_decoder::PoseHeads;
 mod inference;
-pub use inference::InferenceNetwork;
+pub mod network;
 mod precision;
-pub use precision::{Precision, PrecisionError};
-mod tdcm;
-mod weights;
 
-pub use backbone::{
-    Backbone, BackboneConfig, BackboneTrace, ConvNextBlock, GeluGrn, GlobalResponseNorm,
-};
 pub use cost::multiply_adds;
+pub use cpu::PoseHeads;
 pub use device::{DeviceError, available_backends, is_host_cpu, select_device};
-pub use tdcm::{
-    Decoder, HEAD_SCALE_MAX, HEAD_SCALE_MIN, Head, Heads, MatchMaps, SearchMatcher, SearchTrace,
-    TEMPLATE_GRID, Tdcm, TdcmConfig, TemplateEncoder, depthwise_correlation,
+pub use inference::InferenceNetwork;
+pub use network::{
+    Backbone, BackboneConfig, BackboneTrace, ConvNextBlock, DEFAULT_WEIGHTS, DEFAULT_WEIGHTS_NAME,
+    GlobalResponseNorm, HEAD_SCALE_MAX, HEAD_SCALE_MIN, Head, Heads, LoadError, MatchMaps,
+    PYTORCH_KEY_MAP, SearchBranch, SearchTrace, TEMPLATE_GRID, Tdcm, TdcmConfig, TemplateEncoder,
+    Upsampler, WeightsFormat, WeightsSource, depthwise_correlation, export_pytorch_safetensors,
+    load_weights, load_weights_from_bytes, save_weights,
 };
-pub use weights::{
-    DEFAULT_WEIGHTS, DEFAULT_WEIGHTS_NAME, LoadError, PYTORCH_KEY_MAP, WeightsFormat,
-    WeightsSource, export_pytorch_safetensors, load_weights, load_weights_from_bytes, save_weights,
-};
+pub use precision::{Precision, PrecisionError};

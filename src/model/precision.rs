@@ -1,20 +1,20 @@
 //! The arithmetic of the network's matrix products, chosen by the operator.
 //!
 //! `f32` is the exact function of the checkpoint (the parity fixtures hold it to 1e-4).
-//! `bf16` rounds both operands of every large product (backbone pointwise layers, decoder and
+//! `bf16` rounds both operands of every large product (backbone pointwise layers, upsampler and
 //! head convolutions) to bfloat16 and runs them on AMX tiles or with AVX-512 BF16 dot products
 //! (see `bf16.rs`), accumulating in f32: several times faster, slightly different numbers (README
 //! "Speed" shows the held-out accuracy of both). Everything else (depthwise convolutions,
-//! normalisations, activations, correlation, decoding, refinement) stays f32 in both. `auto` —
+//! normalisations, activations, correlation, peak reading, refinement) stays f32 in both. `auto` —
 //! what the CLI and the service use unless told otherwise — is bf16 where the CPU has either and
-//! the network runs on the host CPU kernels, f32 elsewhere: on held-out pairs the two agree
-//! within noise (README "Speed"), and bf16 halves a large frame's time. `f32` pins the exact
+//! the network runs on the CPU implementation, f32 elsewhere: on held-out pairs the two agree
+//! within noise (docs/speed.md), and bf16 halves a large frame's time. `f32` pins the exact
 //! function everywhere.
 
 use std::fmt;
 use std::str::FromStr;
 
-use super::bf16;
+use super::cpu::bf16;
 
 /// Written `f32`, `bf16` or `auto` in flags and settings; this is the one parser of those
 /// words. The library's networks run f32 unless given another precision.
@@ -76,7 +76,7 @@ pub enum PrecisionError {
     )]
     NoBf16Instructions,
     #[error(
-        "precision bf16 runs on the host CPU kernels only (BURN_DEVICE flex or ndarray): use precision f32 on this device"
+        "precision bf16 runs on the CPU implementation only (BURN_DEVICE flex or ndarray): use precision f32 on this device"
     )]
     NotHostCpu,
 }
@@ -94,8 +94,8 @@ impl Precision {
 }
 
 impl Precision {
-    /// The precision a network runs: `auto` becomes bf16 where this machine has a bf16 kernel and
-    /// the network runs on the host CPU kernels (`host_kernels`), f32 elsewhere; the others
+    /// The precision a network runs: `auto` becomes bf16 where this machine has bf16 instructions and
+    /// the network runs on the CPU implementation (`host_kernels`), f32 elsewhere; the others
     /// stay as they are.
     pub fn resolve(self, host_kernels: bool) -> Precision {
         match self {
@@ -108,7 +108,7 @@ impl Precision {
     /// What runs the products at this precision on this machine, for logs and benchmarks:
     /// `f32`, `bf16 (AMX tiles)`, `bf16 (AVX-512 BF16)` (`auto` as it is, unresolved).
     pub fn arithmetic(self) -> String {
-        match (self, bf16::kernel()) {
+        match (self, bf16::instructions()) {
             (Self::Bf16, Some(kernel)) => format!("bf16 ({kernel})"),
             (other, _) => other.to_string(),
         }
@@ -130,7 +130,7 @@ mod tests {
     }
 
     #[test]
-    fn auto_is_bf16_exactly_where_a_bf16_kernel_and_host_kernels_are() {
+    fn auto_is_bf16_exactly_where_bf16_instructions_and_the_cpu_implementation_are() {
         let expected = if bf16::available() {
             Precision::Bf16
         } else {
@@ -144,7 +144,7 @@ mod tests {
     }
 
     #[test]
-    fn bf16_is_refused_exactly_where_there_is_no_bf16_kernel() {
+    fn bf16_is_refused_exactly_where_there_are_no_bf16_instructions() {
         assert_eq!(Precision::F32.check_machine(), Ok(()));
         let bf16 = Precision::Bf16.check_machine();
         if bf16::available() {

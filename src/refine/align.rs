@@ -20,7 +20,7 @@ use crate::geometry::Pose;
 use crate::imaging::{BilinearTap, GrayImage32, gaussian_blur, gradients};
 
 /// A blurred window of the search image with its gradients, in window coordinates.
-pub(super) struct GradientWindow {
+pub(crate) struct GradientWindow {
     x0: f32,
     y0: f32,
     image: GrayImage32,
@@ -31,7 +31,7 @@ pub(super) struct GradientWindow {
 impl GradientWindow {
     /// The window of `image` that holds a circle of `radius` around `(cx, cy)`, blurred with a
     /// Gaussian of `sigma` pixels (none when `sigma` is 0), and its central-difference gradients.
-    pub(super) fn new(image: &GrayImage32, cx: f32, cy: f32, radius: f32, sigma: f32) -> Self {
+    pub(crate) fn new(image: &GrayImage32, cx: f32, cy: f32, radius: f32, sigma: f32) -> Self {
         let clamp = |v: f32, hi: usize| (v.floor().max(0.0) as usize).min(hi.saturating_sub(1));
         let (left, right) = (
             clamp(cx - radius, image.width),
@@ -68,7 +68,7 @@ impl GradientWindow {
     /// The whole of `image`, blurred and with its gradients: one window that serves every
     /// candidate of an image (inside a window's reach the values equal those of
     /// [`GradientWindow::new`], whose margin is the blur's radius).
-    pub(super) fn whole(image: &GrayImage32, sigma: f32) -> Self {
+    pub(crate) fn whole(image: &GrayImage32, sigma: f32) -> Self {
         let (w, h) = (image.width as f32, image.height as f32);
         Self::new(image, 0.5 * w, 0.5 * h, w.max(h) + 1.0, sigma)
     }
@@ -76,7 +76,7 @@ impl GradientWindow {
 
 /// Template points: offsets from the template centre and values, taken from the template
 /// blurred to match the window's blur at the expected scale.
-pub(super) struct AlignPoints {
+pub(crate) struct AlignPoints {
     /// The points, each weighted by its template value `T`.
     lanes: PointLanes,
     /// Σ T and Σ (T − mean)², for the closed-form cost.
@@ -88,7 +88,7 @@ impl AlignPoints {
     /// Every `stride`-th pixel of `template` blurred by `sigma` template pixels; with
     /// `whole_lanes`, without the farthest few that would start a last lane
     /// ([`super::in_whole_lanes`]).
-    pub(super) fn new(
+    pub(crate) fn new(
         template: &GrayImage32,
         sigma: f32,
         max_side: usize,
@@ -114,7 +114,7 @@ impl AlignPoints {
 /// Levenberg–Marquardt iterations of the five parameters from `start`, at most `iterations`
 /// and until a step lowers the normalised residual by less than `tolerance` of itself;
 /// returns the pose with the lowest residual found (never worse than `start`).
-pub(super) fn align(
+pub(crate) fn align(
     points: &AlignPoints,
     window: &GradientWindow,
     start: &Pose,

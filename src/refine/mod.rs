@@ -22,19 +22,14 @@
 //! its centre stays within a third of the object's size, so that refinement does not trade an
 //! object the network found for a better-looking neighbour.
 //!
-//! [`Verifier`] decides between many candidates of one image (the network proposes, the image
-//! decides): a cheap screen of each candidate first, the same angle x scale search on a
-//! downsampled image (every angle at the candidate's scales, every scale pair only at the best
-//! few angles), then the fine search and alignment for the candidates that survive, each
-//! ending with its similarity at the refined pose ([`verify`]).
+//! The matcher's verification (`matcher/verification.rs`) builds on the same pieces to
+//! decide between many candidates of one image: the angle x scale search on a downsampled
+//! image as a cheap screen, then the fine search and alignment for the survivors.
 
 use crate::geometry::{Pose, wrap_angle_deg};
 
-mod align;
+pub(crate) mod align;
 mod correlate;
-mod verify;
-
-pub use verify::{Screened, Verified, Verifier, correlation_length};
 
 use crate::imaging::GrayImage32;
 
@@ -169,38 +164,38 @@ pub(crate) fn zncc(dot: f32, sum: f32, sum_sq: f32, n: usize) -> f32 {
 
 /// A pose and its score under one set of [`TemplatePoints`].
 #[derive(Debug, Clone, Copy)]
-struct Scored {
-    pose: Pose,
-    score: f32,
+pub(crate) struct Scored {
+    pub(crate) pose: Pose,
+    pub(crate) score: f32,
 }
 
 /// The angle x scales grid searched around a pose at its fixed centre.
-struct AngleScaleGrid {
+pub(crate) struct AngleScaleGrid {
     /// Angle step near the start (degrees), searched within ±30°.
-    near_step_deg: f32,
+    pub(crate) near_step_deg: f32,
     /// Scale factors per axis near the start.
-    near_factors: Vec<f32>,
+    pub(crate) near_factors: Vec<f32>,
     /// Angle step over the rest of the circle, searched when nothing near scores
     /// [`FULL_CIRCLE_BELOW`].
-    far_step_deg: f32,
+    pub(crate) far_step_deg: f32,
     /// Scale factors per axis over the rest of the circle.
-    far_factors: Vec<f32>,
+    pub(crate) far_factors: Vec<f32>,
     /// `Some(n)`: score every angle at the start's scales first and try the scale factors
     /// only at the `n` best angles (the screen's shortcut); `None`: every angle x scales.
-    angles_first: Option<usize>,
+    pub(crate) angles_first: Option<usize>,
     /// Near the start, score the isotropic scale pairs (`f·sx, f·sy` for each near factor `f`)
     /// first and then only the 3x3 pairs one factor step around the best of them (13 pairs
-    /// instead of 25; the screen's shortcut: README "Verified candidates"); otherwise every
+    /// instead of 25; the screen's shortcut: docs/verification.md); otherwise every
     /// pair of near factors.
-    isotropic_first: bool,
+    pub(crate) isotropic_first: bool,
     /// Search near the start's mirrored angle (`-angle`) too, as a second start: the network
     /// reads an angle as `±acos(cos)` with the sign from its sign map, and the sign is the
-    /// head it gets wrong most (README "Verified candidates").
-    mirrored_start: bool,
+    /// head it gets wrong most (docs/verification.md).
+    pub(crate) mirrored_start: bool,
 }
 
 /// The `keep` angles of `angles` at which the template at `start`'s scales scores best.
-fn best_angles(
+pub(crate) fn best_angles(
     points: &TemplatePoints,
     image: &GrayImage32,
     start: &Pose,
@@ -227,7 +222,7 @@ fn best_angles(
 
 impl AngleScaleGrid {
     /// The refinement's grid (full-resolution sparse points): 3° near, 6° far.
-    fn refinement() -> Self {
+    pub(crate) fn refinement() -> Self {
         Self {
             near_step_deg: 3.0,
             near_factors: (0..5).map(|k| 0.7f32 * 2f32.powf(k as f32 / 4.0)).collect(),
@@ -243,7 +238,7 @@ impl AngleScaleGrid {
     /// `points`, trying only angles that `allowed` accepts: ±30° first (and ±30° around the
     /// mirrored angle with `mirrored_start`), the rest of the circle when nothing there reaches
     /// [`FULL_CIRCLE_BELOW`] (a weakly trained network, a symmetric-looking part).
-    fn search(
+    pub(crate) fn search(
         &self,
         points: &TemplatePoints,
         image: &GrayImage32,
@@ -259,7 +254,7 @@ impl AngleScaleGrid {
     /// [`AngleScaleGrid::search`]'s best pose in each window it searched (the start's, the
     /// mirrored start's, the rest of the circle), the start's first: starts for an alignment,
     /// which can pull a centre a few pixels off onto the object only from the right angle.
-    fn search_windows(
+    pub(crate) fn search_windows(
         &self,
         points: &TemplatePoints,
         image: &GrayImage32,
@@ -374,7 +369,7 @@ impl AngleScaleGrid {
 }
 
 /// Scales ±10 % (5x5 factors), then the angle ±4° in 1° steps, around `best` (centre fixed).
-fn fine_search(
+pub(crate) fn fine_search(
     points: &TemplatePoints,
     image: &GrayImage32,
     mut best: Scored,
@@ -414,7 +409,7 @@ fn fine_search(
 /// All five parameters jointly, coarse to fine (Gauss–Newton on blurred images, see [`align`]),
 /// from each of `starts`; the pose with the highest ZNCC under `support` wins. `around` is the
 /// pose whose neighbourhood the blurred windows cover (the candidate's).
-fn align_from(
+pub(crate) fn align_from(
     template: &GrayImage32,
     support: &TemplatePoints,
     image: &GrayImage32,
@@ -468,7 +463,7 @@ fn align_from(
 
 /// Whether `pose` stayed near `reference`: within a third of the object's size, so that
 /// refinement does not trade the object a candidate stands for for a better-looking neighbour.
-fn stayed_near(template: &GrayImage32, reference: &Pose, pose: &Pose) -> bool {
+pub(crate) fn stayed_near(template: &GrayImage32, reference: &Pose, pose: &Pose) -> bool {
     let side = template.width.min(template.height) as f32;
     let moved = (pose.x - reference.x).hypot(pose.y - reference.y);
     moved <= side.max(8.0) * reference.scale_x.min(reference.scale_y) / 3.0
@@ -639,13 +634,18 @@ mod tests {
             network_score: 0.0,
         };
         let template = cut_template(&image, &truth);
-        let verifier = verify::Verifier::new(&template, &image, Some((1.0, 1.5)), |_| true);
+        let verifier = crate::matcher::verification::Verifier::new(
+            &template,
+            &image,
+            Some((1.0, 1.5)),
+            |_| true,
+        );
         let start = Pose {
             scale_x: 0.7,
             ..truth
         };
         let confirmed = verifier.confirm(
-            &verify::Screened {
+            &crate::matcher::verification::Screened {
                 pose: start,
                 score: 0.0,
             },

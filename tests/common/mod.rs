@@ -1,5 +1,7 @@
-//! Helpers shared by the integration tests: where the reference files are, and how to turn the
-//! parity fixture's stored pictures into image files a user would pass to `posematch`.
+//! Helpers shared by the integration tests: where the reference files are, how a test that
+//! cannot run here says so ([`unavailable`]), the generated photos and pairs with known truth,
+//! and how to turn the parity fixture's stored pictures into image files a user would pass to
+//! `posematch`.
 
 #![allow(dead_code)]
 
@@ -8,28 +10,122 @@ pub mod service;
 
 use std::path::{Path, PathBuf};
 
+use posematch::imaging::InputConvention;
+use posematch::matcher::Matcher;
+use posematch::model::load_weights;
+use posematch::synth::{DEFAULT_MIN_STRUCTURE, Level, PairSpec};
 use rand::rngs::StdRng;
 use rand::{Rng, SeedableRng};
 use safetensors::SafeTensors;
 
-/// `../shared/reference`, or None (with a printed reason) when it is absent. Where
-/// `POSEMATCH_REQUIRE_REFERENCE` is set (CI, which always has the files: `.ci/run`), absence is
-/// a failure, not a skip.
-pub fn reference_dir() -> Option<PathBuf> {
-    let dir = PathBuf::from(env!("CARGO_MANIFEST_DIR")).join("../shared/reference");
-    if dir.join("tdcm-parity.safetensors").is_file() && dir.join("tdcm-official.pth").is_file() {
-        Some(dir)
-    } else {
+/// The reference files beside the checkout: the parity fixture and the official checkpoint.
+pub const REFERENCE: &str = "../shared/reference";
+/// The real `grpcurl` binary, for the debugging workflow through reflection.
+pub const GRPCURL: &str = "grpcurl";
+/// `initdb` and `pg_ctl`, for throw-away database clusters.
+pub const POSTGRESQL: &str = "PostgreSQL";
+
+/// The variables that made one dependency's absence a failure before [`unavailable`] looked at
+/// `CI`; still honoured (`.ci/run` sets them).
+const REQUIRED_BY: [(&str, &str); 3] = [
+    (REFERENCE, "POSEMATCH_REQUIRE_REFERENCE"),
+    (GRPCURL, "POSEMATCH_REQUIRE_GRPCURL"),
+    (POSTGRESQL, "POSEMATCH_REQUIRE_POSTGRES"),
+];
+
+/// The one way a test skips: `dependency` is missing here, and `why` says what needs it or what
+/// would provide it. In CI (the variable `CI` set to anything but "", "0" or "false"), or where
+/// the dependency's `POSEMATCH_REQUIRE_*` variable is set, absence is a failure: this panics.
+/// Elsewhere it writes `SKIPPED <test>: <dependency> is absent (<why>)` and the caller returns.
+pub fn unavailable(dependency: &str, why: &str) {
+    let ci = std::env::var_os("CI")
+        .map(|v| v.to_string_lossy().to_ascii_lowercase())
+        .unwrap_or_default();
+    let in_ci = !matches!(ci.as_str(), "" | "0" | "false");
+    assert!(
+        !in_ci,
+        "{dependency} is required in CI (CI={ci}) but absent: {why}"
+    );
+    for (required, variable) in REQUIRED_BY {
         assert!(
-            std::env::var_os("POSEMATCH_REQUIRE_REFERENCE").is_none(),
-            "{} is required here (POSEMATCH_REQUIRE_REFERENCE is set): put the reference files beside the checkout",
-            dir.display()
+            required != dependency || std::env::var_os(variable).is_none(),
+            "{dependency} is required here ({variable} is set) but absent: {why}"
         );
-        eprintln!(
-            "SKIPPED: {} is absent, so tests against the official checkpoint cannot run",
-            dir.display()
+    }
+    report_skip(dependency, why);
+}
+
+/// A test that cannot run on this machine because it lacks `feature` (a CPU capability, not
+/// something to install): the same `SKIPPED` line as [`unavailable`], never a failure.
+pub fn not_on_this_machine(feature: &str, why: &str) {
+    report_skip(feature, why);
+}
+
+/// One line naming the skipped test (libtest names each test's thread after it), written to
+/// the process's stderr itself: libtest captures only `print!`/`eprint!`, so `cargo test` shows
+/// the line even for a test that passes.
+fn report_skip(what: &str, why: &str) {
+    use std::io::Write;
+    let thread = std::thread::current();
+    let test = thread.name().unwrap_or("an unnamed test");
+    let _ = writeln!(
+        std::io::stderr().lock(),
+        "SKIPPED {test}: {what} is absent ({why})"
+    );
+}
+
+/// `../shared/reference` when it holds the fixture and the official checkpoint; None, silently,
+/// when it does not (for tests that use the files only when present).
+pub fn reference_files() -> Option<PathBuf> {
+    let dir = PathBuf::from(env!("CARGO_MANIFEST_DIR")).join(REFERENCE);
+    let present =
+        dir.join("tdcm-parity.safetensors").is_file() && dir.join("tdcm-official.pth").is_file();
+    present.then_some(dir)
+}
+
+/// `../shared/reference`, or None after [`unavailable`] (a failure in CI, which always has the
+/// files: `.ci/run`).
+pub fn reference_dir() -> Option<PathBuf> {
+    let dir = reference_files();
+    if dir.is_none() {
+        unavailable(
+            REFERENCE,
+            "tests against the official checkpoint need tdcm-parity.safetensors and tdcm-official.pth there",
         );
-        None
+    }
+    dir
+}
+
+/// A throw-away PostgreSQL cluster, or None after [`unavailable`] when PostgreSQL is not
+/// installed (a failure in CI: `.ci/run` installs it).
+pub fn postgres_cluster() -> Option<postgres::PgCluster> {
+    let cluster = postgres::PgCluster::start();
+    if cluster.is_none() {
+        unavailable(
+            POSTGRESQL,
+            "initdb and pg_ctl are not installed: apt-get install postgresql",
+        );
+    }
+    cluster
+}
+
+/// The official checkpoint of `reference` (from [`reference_dir`]) as a matcher on the CPU,
+/// with the ImageNet RGB input convention.
+pub fn official_matcher(reference: &Path) -> Matcher {
+    let device = burn::prelude::Device::flex();
+    let model = load_weights(&reference.join("tdcm-official.pth"), &device).unwrap();
+    Matcher::new(model, device, InputConvention::ImagenetRgb)
+}
+
+/// The paper's S1.5 pairs at the paper's sizes: 36x36 templates in 224x224 search windows, with
+/// the default least structure of a template.
+pub fn s1_5_spec() -> PairSpec {
+    PairSpec {
+        level: Level::S1_5,
+        template_width: 36,
+        template_height: 36,
+        search_side: 224,
+        min_structure: DEFAULT_MIN_STRUCTURE,
     }
 }
 
@@ -61,8 +157,8 @@ pub fn read_fixture(dir: &Path) -> Vec<u8> {
     std::fs::read(dir.join("tdcm-parity.safetensors")).expect("fixture file readable")
 }
 
-/// Writes the fixture's `{pair}.{name}` BGR u8 `[h, w, 3]` array as an RGB PNG.
-pub fn write_bgr_png(st: &SafeTensors, name: &str, out: &Path) {
+/// The fixture's `{pair}.{name}` BGR u8 `[h, w, 3]` array as an RGB image.
+pub fn fixture_rgb(st: &SafeTensors, name: &str) -> image::RgbImage {
     let view = st.tensor(name).unwrap_or_else(|e| panic!("{name}: {e}"));
     let shape = view.shape();
     let (h, w) = (shape[0] as u32, shape[1] as u32);
@@ -71,10 +167,12 @@ pub fn write_bgr_png(st: &SafeTensors, name: &str, out: &Path) {
         .chunks_exact(3)
         .flat_map(|p| [p[2], p[1], p[0]])
         .collect();
-    image::RgbImage::from_raw(w, h, rgb)
-        .expect("size matches")
-        .save(out)
-        .expect("png written");
+    image::RgbImage::from_raw(w, h, rgb).expect("size matches")
+}
+
+/// Writes the fixture's `{pair}.{name}` BGR u8 `[h, w, 3]` array as an RGB PNG.
+pub fn write_bgr_png(st: &SafeTensors, name: &str, out: &Path) {
+    fixture_rgb(st, name).save(out).expect("png written");
 }
 
 /// The decode the official code produced for `pair` (fixture metadata `decode_no_refine`).

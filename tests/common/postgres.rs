@@ -42,17 +42,11 @@ fn is_root() -> bool {
 }
 
 impl PgCluster {
-    /// A running cluster, or None (with a printed reason) when PostgreSQL is not installed. Where
-    /// `POSEMATCH_REQUIRE_POSTGRES` is set (CI: `.ci/run` installs it), absence is a failure.
+    /// A running cluster, or None when PostgreSQL is not installed; the caller says why it does
+    /// without one (tests: `common::postgres_cluster`, which skips or, in CI, fails). This file
+    /// stays free of the other helpers: `benches/store.rs` includes it on its own.
     pub fn start() -> Option<Self> {
-        let Some(bin) = find_bin() else {
-            assert!(
-                std::env::var_os("POSEMATCH_REQUIRE_POSTGRES").is_none(),
-                "PostgreSQL is required here (POSEMATCH_REQUIRE_POSTGRES is set): apt-get install postgresql"
-            );
-            eprintln!("SKIPPED: PostgreSQL (initdb, pg_ctl) is not installed");
-            return None;
-        };
+        let bin = find_bin()?;
         let dir = tempfile::tempdir().expect("temporary directory");
         let as_postgres = is_root();
         if as_postgres {

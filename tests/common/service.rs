@@ -1,13 +1,18 @@
 //! Helpers for tests of the gRPC service: servers in this process (an untrained network, for
-//! the contract) or as child processes (the real binary, to kill or measure), images, requests
-//! and metrics.
+//! the contract) or as child processes (the real binary, to kill or measure; ready once their
+//! health service says SERVING), images, requests, poses and metrics.
+//!
+//! `benches/store.rs` includes this file on its own (`#[path]`), so it uses nothing from the
+//! other files of `tests/common`.
 
 use std::collections::HashMap;
 use std::path::Path;
+use std::time::{Duration, Instant};
 
+use posematch::config::{Overrides, Settings};
 use posematch::grpc::proto::pose_matcher_client::PoseMatcherClient;
 use posematch::grpc::proto::{self, image::Data};
-use posematch::grpc::{ModelLoader, Overrides, RunningServer, Settings};
+use posematch::grpc::{ModelLoader, RunningServer};
 use posematch::imaging::InputConvention;
 use posematch::matcher::Matcher;
 use posematch::model::{TdcmConfig, select_device};
@@ -63,15 +68,24 @@ pub fn scene(width: u32, height: u32, seed: u32) -> image::RgbImage {
     })
 }
 
-pub fn png(image: &image::RgbImage) -> Vec<u8> {
+/// `image` as the bytes of a `format` file (PNG, JPEG...).
+pub fn encode_image<P>(
+    image: &image::ImageBuffer<P, Vec<P::Subpixel>>,
+    format: image::ImageFormat,
+) -> Vec<u8>
+where
+    P: image::PixelWithColorType,
+    [P::Subpixel]: image::EncodableLayout,
+{
     let mut bytes = Vec::new();
     image
-        .write_to(
-            &mut std::io::Cursor::new(&mut bytes),
-            image::ImageFormat::Png,
-        )
+        .write_to(&mut std::io::Cursor::new(&mut bytes), format)
         .unwrap();
     bytes
+}
+
+pub fn png(image: &image::RgbImage) -> Vec<u8> {
+    encode_image(image, image::ImageFormat::Png)
 }
 
 pub fn encoded(bytes: Vec<u8>) -> Option<proto::Image> {
@@ -106,16 +120,25 @@ pub fn match_request(id: &str, image: Vec<u8>, request_id: &str) -> proto::Match
 }
 
 /// Equal up to float summation order (the network's reductions run in parallel).
+pub fn same_pose(p: &proto::Pose, q: &proto::Pose) -> bool {
+    (p.x - q.x).abs() < 0.01
+        && (p.y - q.y).abs() < 0.01
+        && (p.angle_deg - q.angle_deg).abs() < 0.01
+        && (p.scale_x - q.scale_x).abs() < 1e-3
+        && (p.scale_y - q.scale_y).abs() < 1e-3
+        && (p.score - q.score).abs() < 1e-4
+}
+
+/// The same poses, in the same order ([`same_pose`]).
+pub fn same_poses(a: &[proto::Pose], b: &[proto::Pose]) -> bool {
+    a.len() == b.len() && a.iter().zip(b).all(|(p, q)| same_pose(p, q))
+}
+
+/// [`same_poses`], or a failure naming the first pair that differs.
 pub fn assert_same_poses(a: &[proto::Pose], b: &[proto::Pose]) {
     assert_eq!(a.len(), b.len(), "{a:?} vs {b:?}");
     for (p, q) in a.iter().zip(b) {
-        let close = (p.x - q.x).abs() < 0.01
-            && (p.y - q.y).abs() < 0.01
-            && (p.angle_deg - q.angle_deg).abs() < 0.01
-            && (p.scale_x - q.scale_x).abs() < 1e-3
-            && (p.scale_y - q.scale_y).abs() < 1e-3
-            && (p.score - q.score).abs() < 1e-4;
-        assert!(close, "{p:?} vs {q:?}");
+        assert!(same_pose(p, q), "{p:?} vs {q:?}");
     }
 }
 
@@ -146,6 +169,16 @@ pub fn counter(metrics: &str, name: &str, label_filter: &str) -> f64 {
         .sum()
 }
 
+/// Health status codes, as `Check` answers them.
+pub const SERVING: i32 = tonic_health::pb::health_check_response::ServingStatus::Serving as i32;
+pub const NOT_SERVING: i32 =
+    tonic_health::pb::health_check_response::ServingStatus::NotServing as i32;
+
+/// How long a child server may take to turn SERVING (it loads the model after binding).
+const START_DEADLINE: Duration = Duration::from_secs(120);
+/// Pause between two health checks of a starting child server.
+const HEALTH_POLL: Duration = Duration::from_millis(20);
+
 /// `posematch serve` as a child process (embedded weights, plaintext on 127.0.0.1, a port the
 /// OS picks), so that its own peak memory can be read from `/proc` and it can be killed with
 /// SIGKILL. Its log lines are kept for assertions.
@@ -157,6 +190,7 @@ pub struct ChildServer {
 }
 
 impl ChildServer {
+    /// A SERVING server on a template directory of its own.
     pub fn start() -> Self {
         let dir = tempfile::tempdir().unwrap();
         let mut server = Self::start_in(&dir.path().join("templates"), |_| {});
@@ -164,7 +198,7 @@ impl ChildServer {
         server
     }
 
-    /// A server on `template_dir`; `configure` may add arguments or change the user.
+    /// A SERVING server on `template_dir`; `configure` may add arguments or change the user.
     pub fn start_in(
         template_dir: &Path,
         configure: impl FnOnce(&mut std::process::Command),
@@ -175,8 +209,29 @@ impl ChildServer {
         })
     }
 
-    /// A server whose store (and anything else) `configure` sets.
+    /// A server whose store (and anything else) `configure` sets, once its health service
+    /// answers SERVING for the whole server.
     pub fn start_with(configure: impl FnOnce(&mut std::process::Command)) -> Self {
+        let mut server = Self::launch_with(configure);
+        server.wait_until_serving();
+        server
+    }
+
+    /// [`ChildServer::start_in`] without waiting for SERVING: for a server that is expected
+    /// not to serve (ask [`ChildServer::health`]).
+    pub fn launch_in(
+        template_dir: &Path,
+        configure: impl FnOnce(&mut std::process::Command),
+    ) -> Self {
+        Self::launch_with(|command| {
+            command.arg("--template-dir").arg(template_dir);
+            configure(command);
+        })
+    }
+
+    /// The server as soon as it listens (its log names the port the OS gave it), serving or
+    /// not.
+    pub fn launch_with(configure: impl FnOnce(&mut std::process::Command)) -> Self {
         use std::io::BufRead;
         let mut command = std::process::Command::new(env!("CARGO_BIN_EXE_posematch"));
         command
@@ -188,20 +243,25 @@ impl ChildServer {
         let mut child = command.spawn().expect("posematch serve starts");
         let mut lines = std::io::BufReader::new(child.stderr.take().unwrap()).lines();
         let log = std::sync::Arc::new(std::sync::Mutex::new(Vec::new()));
-        let (mut addr, mut loaded) = (None, false);
+        let mut addr = None;
         for line in lines.by_ref() {
             let line = line.expect("server log readable");
-            if let Some(rest) = line.split("grpc_addr=").nth(1) {
-                addr = rest.split_whitespace().next().map(str::to_owned);
-            }
-            loaded |= line.contains("model loaded");
-            let failed =
-                line.contains("could not be loaded") || line.contains("could not be opened");
+            addr = line
+                .split("grpc_addr=")
+                .nth(1)
+                .and_then(|rest| rest.split_whitespace().next())
+                .map(str::to_owned);
             log.lock().unwrap().push(line);
-            if (addr.is_some() && loaded) || failed {
+            if addr.is_some() {
                 break;
             }
         }
+        let Some(addr) = addr else {
+            let _ = child.kill();
+            let _ = child.wait();
+            let log = log.lock().unwrap().clone();
+            panic!("the server ended without logging its address: {log:?}");
+        };
         // Keep draining the log so the server never blocks on a full pipe.
         let kept = log.clone();
         std::thread::spawn(move || {
@@ -209,12 +269,43 @@ impl ChildServer {
                 kept.lock().unwrap().push(line);
             }
         });
-        let addr = addr.expect("the server logs its address");
         Self {
             child,
             addr,
             log,
             _dir: None,
+        }
+    }
+
+    /// Polls the health service until the whole server is SERVING. Fails, with the log, when
+    /// the server exits or reports a failed start first, or is not SERVING within
+    /// [`START_DEADLINE`].
+    fn wait_until_serving(&mut self) {
+        let started = Instant::now();
+        loop {
+            let exited = self
+                .child
+                .try_wait()
+                .expect("the server's state is readable");
+            let failed = self.logged("could not be loaded") || self.logged("could not be opened");
+            if exited.is_some() || failed {
+                panic!(
+                    "the server did not start (exit: {exited:?}): {:?}",
+                    self.log_so_far()
+                );
+            }
+            let status = health_blocking(&self.addr, "");
+            if status == Ok(SERVING) {
+                return;
+            }
+            if started.elapsed() > START_DEADLINE {
+                panic!(
+                    "the server is not SERVING after {START_DEADLINE:?} (health: {status:?}): {:?}",
+                    self.log_so_far()
+                );
+            }
+            // The interval between two checks, not a guess at how long loading takes.
+            std::thread::sleep(HEALTH_POLL);
         }
     }
 
@@ -232,6 +323,11 @@ impl ChildServer {
     /// Whether a log line contains `text` so far.
     pub fn logged(&self, text: &str) -> bool {
         self.log.lock().unwrap().iter().any(|l| l.contains(text))
+    }
+
+    /// A copy of the log lines so far.
+    pub fn log_so_far(&self) -> Vec<String> {
+        self.log.lock().unwrap().clone()
     }
 
     /// SIGKILL, as an OOM killer or a power cut would: no destructor, no flush.
@@ -307,6 +403,35 @@ pub async fn health_of(addr: &str, service: &str) -> i32 {
         .expect("health answers")
         .into_inner()
         .status
+}
+
+/// One health check of `service` ("" = the whole server) on the server at `addr`, from
+/// synchronous code, a tokio worker's included: it runs on a thread of its own, with a runtime
+/// of its own.
+pub fn health_blocking(addr: &str, service: &str) -> Result<i32, String> {
+    let (addr, service) = (addr.to_owned(), service.to_owned());
+    std::thread::spawn(move || -> Result<i32, String> {
+        let runtime = tokio::runtime::Builder::new_current_thread()
+            .enable_all()
+            .build()
+            .map_err(|e| e.to_string())?;
+        runtime.block_on(async move {
+            let channel = Channel::from_shared(format!("http://{addr}"))
+                .map_err(|e| e.to_string())?
+                .connect_timeout(Duration::from_secs(1))
+                .timeout(Duration::from_secs(5))
+                .connect()
+                .await
+                .map_err(|e| e.to_string())?;
+            let answer = tonic_health::pb::health_client::HealthClient::new(channel)
+                .check(tonic_health::pb::HealthCheckRequest { service })
+                .await
+                .map_err(|e| e.to_string())?;
+            Ok::<i32, String>(answer.into_inner().status)
+        })
+    })
+    .join()
+    .expect("the health check's thread does not panic")
 }
 
 /// Every registered template, following `next_page_token` with pages of `page_size`.

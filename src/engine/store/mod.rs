@@ -105,6 +105,12 @@ pub enum StoreError {
     /// The database answered with an error that retrying will not fix (schema, permissions).
     #[error("template database: {0}")]
     Database(String),
+    /// No room left for a template (disk or quota full, the database out of disk): the request
+    /// may succeed once an operator frees space; nothing was half-written.
+    #[error(
+        "template store is full ({0}); delete templates you no longer need or ask the operator to free space"
+    )]
+    Full(String),
 }
 
 /// Where templates are kept, as configured (`template_store`, or the older `template_dir`).
@@ -404,10 +410,18 @@ fn is_hex_digest(s: &str) -> bool {
 }
 
 /// For error messages that name a directory.
+/// A full disk or quota is [`StoreError::Full`] (the caller can act on it), anything else
+/// [`StoreError::Io`].
 fn io_error(path: &Path) -> impl FnOnce(std::io::Error) -> StoreError + '_ {
-    move |source| StoreError::Io {
-        path: path.to_owned(),
-        source,
+    use std::io::ErrorKind;
+    move |source| match source.kind() {
+        ErrorKind::StorageFull | ErrorKind::QuotaExceeded | ErrorKind::FileTooLarge => {
+            StoreError::Full("no space left on the template directory's disk".into())
+        }
+        _ => StoreError::Io {
+            path: path.to_owned(),
+            source,
+        },
     }
 }
 

@@ -110,7 +110,8 @@ pub const DEFAULT_WEIGHTS_NAME: &str = "embedded default weights";
 #[repr(C, align(64))]
 struct Aligned<Bytes: ?Sized>(Bytes);
 
-static EMBEDDED: &Aligned<[u8]> = &Aligned(*include_bytes!("../../models/posematch-default.bpk"));
+static EMBEDDED: &Aligned<[u8]> =
+    &Aligned(*include_bytes!("../../../models/posematch-default.bpk"));
 
 /// Which weights a model runs: the one type the CLI, the service settings and training use.
 #[derive(Debug, Clone, PartialEq, Eq)]

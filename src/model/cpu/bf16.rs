@@ -1,14 +1,14 @@
 //! Matrix products in bfloat16, accumulating in f32: on Intel AMX tiles where the CPU has
 //! them, else with AVX-512 BF16 dot products.
 //!
-//! Why: the network's gemms (the backbone's pointwise layers, the decoder's 3x3 convolutions as
+//! Why: the network's gemms (the backbone's pointwise layers, the upsampler's 3x3 convolutions as
 //! im2col) are most of its f32 time. One AMX `tdpbf16ps` does 16x16x32 multiply-adds; one
 //! AVX-512 BF16 `vdpbf16ps` does twice the multiply-adds of an f32 FMA (AMD Zen 4 and later,
 //! Intel Cooper Lake and Sapphire Rapids and later; measured on a Zen 4 core: 225 GFLOP/s
-//! against 108 for the f32 gemm, [`product_gflops`]). Either way the network becomes
+//! against 108 for the f32 gemm, `cargo bench --bench network`). Either way the network becomes
 //! bound by its memory-bound stages instead. The price is bf16 rounding of both operands (8
 //! significant bits); products and sums stay f32. Used only when the caller chose
-//! [`super::Precision::Bf16`]; f32 remains the exact path (parity). Both kernels read the same
+//! [`crate::model::Precision::Bf16`]; f32 remains the exact path (parity). Both kernels read the same
 //! packed weights and compute the same function up to the order of the f32 sums.
 //!
 //! The tile instructions are written as inline assembly: Rust's AMX intrinsics are unstable.
@@ -28,14 +28,14 @@ const BLOCK_ROWS: usize = 2 * TILE_ROWS;
 
 /// The instructions that run this process's bf16 products.
 #[derive(Debug, Clone, Copy, PartialEq, Eq)]
-pub enum Bf16Kernel {
+pub enum Bf16Instructions {
     /// Intel AMX tiles (`tdpbf16ps`).
     AmxTiles,
     /// AVX-512 BF16 dot products (`vdpbf16ps`).
     Avx512Dot,
 }
 
-impl fmt::Display for Bf16Kernel {
+impl fmt::Display for Bf16Instructions {
     fn fmt(&self, f: &mut fmt::Formatter<'_>) -> fmt::Result {
         f.write_str(match self {
             Self::AmxTiles => "AMX tiles",
@@ -44,15 +44,15 @@ impl fmt::Display for Bf16Kernel {
     }
 }
 
-/// The fastest bf16 kernel this process may use, `None` where the CPU has neither. Asked once
+/// The fastest bf16 instructions this process may use, `None` where the CPU has neither. Asked once
 /// per process.
-pub fn kernel() -> Option<Bf16Kernel> {
-    static KERNEL: OnceLock<Option<Bf16Kernel>> = OnceLock::new();
+pub fn instructions() -> Option<Bf16Instructions> {
+    static KERNEL: OnceLock<Option<Bf16Instructions>> = OnceLock::new();
     *KERNEL.get_or_init(|| {
         if tiles_available() {
-            Some(Bf16Kernel::AmxTiles)
+            Some(Bf16Instructions::AmxTiles)
         } else if dot_available() {
-            Some(Bf16Kernel::Avx512Dot)
+            Some(Bf16Instructions::Avx512Dot)
         } else {
             None
         }
@@ -61,7 +61,7 @@ pub fn kernel() -> Option<Bf16Kernel> {
 
 /// Whether bf16 products can run here at all.
 pub fn available() -> bool {
-    kernel().is_some()
+    instructions().is_some()
 }
 
 /// Whether the CPU has AVX-512F and AVX-512 BF16.
@@ -258,14 +258,14 @@ pub fn multiply(lhs: &[u16], m: usize, weights: &Bf16Weights, out: &mut [f32]) {
         lhs.len() >= padded_rows(m) * weights.lhs_stride() && out.len() >= m * weights.n,
         "lhs or out too short; this is a bug"
     );
-    match kernel() {
+    match instructions() {
         #[cfg(target_arch = "x86_64")]
         // SAFETY: the tiles are available and permitted, and the sizes were checked.
-        Some(Bf16Kernel::AmxTiles) => unsafe { multiply_tiles(lhs, m, weights, out) },
+        Some(Bf16Instructions::AmxTiles) => unsafe { multiply_tiles(lhs, m, weights, out) },
         #[cfg(target_arch = "x86_64")]
         // SAFETY: the CPU has AVX-512F and AVX-512 BF16, and the sizes were checked.
-        Some(Bf16Kernel::Avx512Dot) => unsafe { multiply_dot(lhs, m, weights, out) },
-        _ => panic!("no bf16 kernel on this CPU; this is a bug (callers check first)"),
+        Some(Bf16Instructions::Avx512Dot) => unsafe { multiply_dot(lhs, m, weights, out) },
+        _ => panic!("no bf16 instructions on this CPU; this is a bug (callers check first)"),
     }
 }
 
@@ -483,38 +483,6 @@ unsafe fn dot_pass<const NB: usize>(
     }
 }
 
-/// Single-thread GFLOP/s of an `[m, k] x [k, n]` product (bias included) with the f32 gemm of
-/// the host kernels, and with this process's bf16 [`kernel`] (`None` without one): what
-/// `cargo bench --bench network` prints beside the machine's peak.
-pub fn product_gflops(m: usize, k: usize, n: usize) -> (f64, Option<f64>) {
-    let input: Vec<f32> = (0..m * k).map(|i| (i % 7) as f32 * 0.1).collect();
-    let matrix: Vec<f32> = (0..k * n).map(|i| (i % 5) as f32 * 0.1).collect();
-    let bias = vec![0.5f32; n];
-    let mut out = vec![0f32; m * n];
-    let flops = 2.0 * (m * k * n) as f64;
-    let mut rate = |product: &mut dyn FnMut(&mut [f32])| {
-        product(&mut out);
-        let runs = (2e9 / flops).clamp(3.0, 10_000.0) as usize;
-        let start = std::time::Instant::now();
-        for _ in 0..runs {
-            product(&mut out);
-        }
-        flops * runs as f64 / start.elapsed().as_secs_f64() / 1e9
-    };
-    let f32_rate =
-        rate(&mut |out| super::host_ops::matmul_bias(&input, m, k, &matrix, n, &bias, out));
-    let bf16_rate = available().then(|| {
-        let weights = Bf16Weights::new(&matrix, k, n, &bias);
-        let stride = weights.lhs_stride();
-        let mut lhs = vec![0u16; padded_rows(m) * stride];
-        for (row, values) in lhs.chunks_exact_mut(stride).zip(input.chunks_exact(k)) {
-            round_into(values, &mut row[..k]);
-        }
-        rate(&mut |out| multiply(&lhs, m, &weights, out))
-    });
-    (f32_rate, bf16_rate)
-}
-
 #[cfg(test)]
 mod tests {
     use super::*;
@@ -584,6 +552,10 @@ mod tests {
     fn tile_products_equal_the_rounded_operands_product() {
         if tiles_available() {
             assert_equals_the_rounded_operands_product(multiply_tiles);
+        } else {
+            crate::test_support::cannot_run(
+                "this CPU has no AMX tiles (Intel Sapphire Rapids or newer)",
+            );
         }
     }
 
@@ -592,6 +564,10 @@ mod tests {
     fn dot_products_equal_the_rounded_operands_product() {
         if dot_available() {
             assert_equals_the_rounded_operands_product(multiply_dot);
+        } else {
+            crate::test_support::cannot_run(
+                "this CPU has no AVX-512 BF16 (AMD Zen 4, Intel Cooper Lake or newer)",
+            );
         }
     }
 
@@ -599,9 +575,9 @@ mod tests {
     /// there, tested in `precision`).
     #[test]
     fn the_kernel_is_one_this_cpu_has() {
-        match kernel() {
-            Some(Bf16Kernel::AmxTiles) => assert!(tiles_available()),
-            Some(Bf16Kernel::Avx512Dot) => assert!(dot_available() && !tiles_available()),
+        match instructions() {
+            Some(Bf16Instructions::AmxTiles) => assert!(tiles_available()),
+            Some(Bf16Instructions::Avx512Dot) => assert!(dot_available() && !tiles_available()),
             None => assert!(!dot_available() && !tiles_available()),
         }
     }

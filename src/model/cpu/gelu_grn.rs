@@ -1,4 +1,4 @@
-//! Fused inference kernels for the one part of the backbone that burn's element-wise ops make
+//! Fused inference code for the one part of the backbone that burn's element-wise ops make
 //! slow on the CPU: GELU followed by GRN over the 384-channel MLP activation. burn evaluates
 //! exact GELU with a scalar `erff` per element and GRN as several full passes plus strided
 //! reductions (together ~60 % of a 224x224 forward on flex); here it is two passes over the

@@ -1,8 +1,8 @@
-//! The decoder and heads for inference on the host CPU, channels-last from start to finish.
+//! The upsampler and heads for inference on the host CPU, channels-last from start to finish.
 //!
-//! Same function as [`super::Decoder`] + [`super::Heads`] (the parity fixtures check this path),
+//! Same function as [`crate::model::Upsampler`] + [`crate::model::Heads`] (the parity fixtures check this path),
 //! computed differently: BatchNorm folded into the preceding convolution once, when the
-//! [`HostDecoder`] is built from loaded weights, every 3x3 convolution
+//! [`CpuUpsampler`] is built from loaded weights, every 3x3 convolution
 //! as a row-chunked im2col (each chunk fits in L2) times one matrix through the `gemm` crate, chunks
 //! in parallel, pixel shuffles as plain gathers, and the five heads' 1x1 convolutions and output
 //! functions applied to each chunk while it is still in cache. burn's generic convolution converts
@@ -12,10 +12,10 @@
 use burn::prelude::*;
 use rayon::prelude::*;
 
-use super::Precision;
 use super::bf16::{self, Bf16Weights};
-use super::host_ops::{BufferPool, Pooled, converted, matmul_bias, values};
-use super::tdcm::{HEAD_SCALE_MAX, HEAD_SCALE_MIN, Heads, SearchMatcher};
+use super::ops::{BufferPool, Pooled, converted, matmul_bias, values};
+use crate::model::Precision;
+use crate::model::network::{HEAD_SCALE_MAX, HEAD_SCALE_MIN, Heads, SearchBranch};
 use burn::nn::BatchNorm;
 use burn::nn::conv::Conv2d;
 
@@ -23,18 +23,18 @@ use burn::nn::conv::Conv2d;
 const CHUNK_BYTES: usize = 384 * 1024;
 
 /// A 3x3 convolution (padding 1) as an im2col weight matrix.
-pub(super) struct Conv3x3 {
+pub(crate) struct Conv3x3 {
     cin: usize,
     cout: usize,
     /// `[9 * cin, cout]`, row `(ky * 3 + kx) * cin + ci`.
     matrix: Vec<f32>,
     bias: Vec<f32>,
-    /// The same weights packed for the bf16 kernels, when the network runs in bf16.
+    /// The same weights packed for the bf16 products, when the network runs in bf16.
     bf16: Option<Bf16Weights>,
 }
 
 /// An element of im2col patches: f32 for the exact path, bf16 bits for the tiles.
-pub(super) trait Patch: Pooled {
+pub(crate) trait Patch: Pooled {
     /// Values per patch row (9 · cin, padded to the tiles' k steps for bf16).
     fn row_len(conv: &Conv3x3) -> usize;
     /// Patch rows a buffer for `pixels` pixels must hold.
@@ -118,7 +118,7 @@ impl Conv3x3 {
         }
     }
 
-    /// Lays the weights out for the bf16 kernels or drops that copy (f32).
+    /// Lays the weights out for the bf16 products or drops that copy (f32).
     fn set_precision(&mut self, precision: Precision) {
         self.bf16 = (precision == Precision::Bf16)
             .then(|| Bf16Weights::new(&self.matrix, 9 * self.cin, self.cout, &self.bias));
@@ -425,23 +425,23 @@ fn sigmoid(x: f32) -> f32 {
 
 /// One sample's intermediates, channels-last, for the parity fixtures: the fusion
 /// convolution's output `[h, w, 96]` and the two pre-ReLU BatchNorm outputs.
-pub struct HostTrace {
+pub struct UpsamplerTrace {
     pub fusion: Vec<f32>,
     pub bn1: Vec<f32>,
     pub bn2: Vec<f32>,
 }
 
-/// Decoder + heads on the host CPU, with BatchNorm folded and every weight laid out for the
+/// Upsampler + heads on the host CPU, with BatchNorm folded and every weight laid out for the
 /// gemms once, at construction.
-pub struct HostDecoder {
+pub struct CpuUpsampler {
     fusion: Conv3x3,
     conv1: Conv3x3,
     conv2: Conv3x3,
     heads: HeadsCpu,
 }
 
-impl HostDecoder {
-    pub fn new(matcher: &SearchMatcher) -> Self {
+impl CpuUpsampler {
+    pub fn new(matcher: &SearchBranch) -> Self {
         Self {
             fusion: Conv3x3::new(&matcher.fusion, None),
             conv1: Conv3x3::new(&matcher.decoder.conv1, Some(&matcher.decoder.bn1)),
@@ -460,18 +460,18 @@ impl HostDecoder {
     }
 
     /// Whether the products take bf16 patches (`u16` activations) rather than f32: the element
-    /// type [`HostDecoder::forward`] wants its input in.
+    /// type [`CpuUpsampler::forward`] wants its input in.
     pub fn takes_bf16(&self) -> bool {
         self.fusion.bf16.is_some()
     }
 
     /// One sample's channels-last correlation `[h, w, 96]`, in the products' element type
-    /// ([`HostDecoder::takes_bf16`]) → its five maps `[5, 4h, 4w]` (planes) in `maps`, and the
+    /// ([`CpuUpsampler::takes_bf16`]) → its five maps `[5, 4h, 4w]` (planes) in `maps`, and the
     /// intermediates when `trace`. Activations come from and go back to `pool`: each goes back
     /// as soon as the next layer has read it, so at most two whole-image activations are alive
     /// at a time.
     #[allow(clippy::too_many_arguments)]
-    pub(super) fn forward<T: Patch>(
+    pub(crate) fn forward<T: Patch>(
         &self,
         correlation: Vec<T>,
         h: usize,
@@ -480,7 +480,7 @@ impl HostDecoder {
         pose: PoseHeads,
         pool: &mut BufferPool,
         maps: &mut [f32],
-    ) -> Option<HostTrace> {
+    ) -> Option<UpsamplerTrace> {
         let (fused, fusion) = if trace {
             let fusion: Vec<f32> = self.fusion.forward(&correlation, h, w, pool);
             (converted::<T>(&fusion, pool), Some(fusion))
@@ -493,7 +493,7 @@ impl HostDecoder {
         let band = tail_band_rows(2 * h, 2 * w, self.conv2.cout);
         let bn2 = self.tail(&input, 2 * h, 2 * w, band, trace, pose, pool, maps);
         pool.give(input);
-        trace.then(|| HostTrace {
+        trace.then(|| UpsamplerTrace {
             fusion: fusion.expect("traced"),
             bn1: bn1.expect("traced"),
             bn2: bn2.expect("traced"),
@@ -596,7 +596,7 @@ impl HostDecoder {
     }
 }
 
-/// Rows per band of a banded convolution ([`HostDecoder::tail`], `conv1_shuffled`) over an
+/// Rows per band of a banded convolution ([`CpuUpsampler::tail`], `conv1_shuffled`) over an
 /// image `height x width` with `channels` output channels: the band's f32 output about 4 MB
 /// (L2/L3-sized), at least a few rows per thread so every core has chunks, equal bands.
 fn tail_band_rows(height: usize, width: usize, channels: usize) -> usize {
@@ -629,13 +629,13 @@ mod tests {
     fn the_tail_band_by_band_equals_the_whole_image_at_once() {
         let device = Default::default();
         let model = TdcmConfig::new().init(&device);
-        let decoder = HostDecoder::new(&model.search_matcher);
+        let upsampler = CpuUpsampler::new(&model.search_matcher);
         let (h, w) = (13, 7);
         let input = random_values(h * w * 48);
         let mut pool = BufferPool::default();
         let mut run = |band, pose| {
             let mut maps = vec![f32::INFINITY; 5 * 4 * h * w];
-            let bn2 = decoder.tail(&input, h, w, band, true, pose, &mut pool, &mut maps);
+            let bn2 = upsampler.tail(&input, h, w, band, true, pose, &mut pool, &mut maps);
             (maps, bn2.expect("traced"))
         };
         for pose in [PoseHeads::Everywhere, PoseHeads::WhereScoreAtLeast(0.5)] {
@@ -659,12 +659,12 @@ mod tests {
     fn pose_heads_where_the_score_is_high_equal_the_full_maps_there() {
         let device = Default::default();
         let model = TdcmConfig::new().init(&device);
-        let decoder = HostDecoder::new(&model.search_matcher);
+        let upsampler = CpuUpsampler::new(&model.search_matcher);
         let correlation = random_values(9 * 11 * 96);
         let mut pool = BufferPool::default();
         let mut planes = |pose| {
             let mut maps = vec![0f32; 5 * 36 * 44];
-            decoder.forward(
+            upsampler.forward(
                 correlation.clone(),
                 9,
                 11,

@@ -8,17 +8,18 @@
 //! verifier as the network's candidates, at full resolution. It needs no weights and checks the
 //! network on the same pairs; on held-out pairs it finds as many objects as a masked
 //! coarse-to-fine OpenCV NCC (`scripts/opencv_ncc.py`) in less time, 2x less under scale
-//! changes (README "Classical matcher").
+//! changes (docs/verification.md, "Classical matcher").
 
 use rayon::prelude::*;
 
 use crate::geometry::Pose;
 use crate::imaging::{GrayImage32, gaussian_blur};
-use crate::refine::{Screened, TemplatePoints, Verifier, correlation_length, zncc};
+use crate::refine::{TemplatePoints, zncc};
 
-use super::MatchError;
-use super::candidates::{ANGLE_MARGIN_DEG, select};
+use super::error::MatchError;
 use super::options::MatchOptions;
+use super::selection::{ANGLE_MARGIN_DEG, select};
+use super::verification::{Screened, Verifier, correlation_length};
 
 /// Ratio between neighbouring scales of the coarse grid.
 const SCALE_STEP: f32 = 1.25;
@@ -179,7 +180,7 @@ pub const FALLBACK_MAX_POINT_SAMPLES: u64 = 300_000_000;
 const FALLBACK_PEAKS_BEYOND_INSTANCES: usize = 16;
 
 /// The classical search as the network path's fallback, for when none of the network's
-/// candidates verifies (README "Verified candidates"): its best distinct coarse peaks, as
+/// candidates verifies (docs/verification.md): its best distinct coarse peaks, as
 /// candidates for the same verification as the network's (`network_score` 0). Every angle of
 /// the caller's range, but only the template's expected scale (the geometric middle of the
 /// caller's scale range, 1 without one), so that its cost stays near the network's; the
@@ -365,7 +366,7 @@ fn confirm_peaks(
     let poses: Vec<Pose> = peaks
         .into_par_iter()
         .map(|initial| {
-            if !options.refine {
+            if !options.verify {
                 return initial;
             }
             // The score is the similarity at the refined pose, as for the network's answers.

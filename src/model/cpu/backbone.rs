@@ -1,7 +1,7 @@
 //! The search backbone for inference on the host CPU, channels-last from the stem to the
 //! features, and the correlation with the template's kernels.
 //!
-//! Same function as [`super::Backbone`] + [`super::depthwise_correlation`] (the parity fixtures
+//! Same function as [`crate::model::Backbone`] + [`crate::model::depthwise_correlation`] (the parity fixtures
 //! check this path), computed so that a large frame is not bound by the stages between the
 //! products. burn runs each ConvNeXt block as six full passes over the image (depthwise
 //! convolution, permute + LayerNorm, fc1, GELU + GRN, fc2, permute + residual) with a fresh
@@ -18,13 +18,13 @@
 use burn::nn::conv::Conv2d;
 use rayon::prelude::*;
 
-use super::Precision;
-use super::backbone::{Backbone, ConvNextBlock, GRN_EPS, LAYER_NORM_EPS};
 use super::bf16::{self, Bf16Weights};
-use super::host_ops::{
+use super::ops::{
     BufferPool, Pooled, add_in_place, depthwise_pixels, gelu_with_squares, layer_norm_rows,
     matmul_bias, scale_shift_rows, values,
 };
+use crate::model::Precision;
+use crate::model::network::{Backbone, ConvNextBlock, GRN_EPS, LAYER_NORM_EPS};
 
 /// Pixels per parallel chunk: the chunk's fc1 output (256 x 384 f32, 384 KiB) stays in L2.
 /// A multiple of the tile kernel's 32-row blocks.
@@ -181,7 +181,7 @@ enum Hidden {
 }
 
 /// What one image's backbone produced, channels-last.
-pub(crate) struct HostFeatures {
+pub(crate) struct CpuFeatures {
     pub height: usize,
     pub width: usize,
     /// `[height, width, channels]`, after the closing BatchNorm.
@@ -192,7 +192,7 @@ pub(crate) struct HostFeatures {
 }
 
 /// The search backbone on the host CPU, built once from loaded weights.
-pub(crate) struct HostBackbone {
+pub(crate) struct CpuBackbone {
     channels: usize,
     /// Stem as a `[3·4·4, channels]` matrix over patches ordered `(ci, ky, kx)`.
     stem: Dense,
@@ -205,7 +205,7 @@ pub(crate) struct HostBackbone {
     bf16: bool,
 }
 
-impl HostBackbone {
+impl CpuBackbone {
     pub(crate) fn new(backbone: &Backbone) -> Self {
         let [channels, cin, kh, kw] = backbone.stem_conv.weight.dims();
         let patch = cin * kh * kw;
@@ -267,7 +267,7 @@ impl HostBackbone {
         width: usize,
         trace: bool,
         pool: &mut BufferPool,
-    ) -> HostFeatures {
+    ) -> CpuFeatures {
         let (h, w) = (height / 4, width / 4);
         let mut x = self.stem(image, height, width, pool);
         let stem = trace.then(|| x.clone());
@@ -277,7 +277,7 @@ impl HostBackbone {
         let stage1 = trace.then(|| x.clone());
         x.par_chunks_mut(CHUNK_PIXELS * self.channels)
             .for_each(|rows| scale_shift_rows(rows, &self.out_scale, &self.out_shift));
-        HostFeatures {
+        CpuFeatures {
             height: h,
             width: w,
             features: x,
@@ -459,7 +459,7 @@ pub(crate) fn correlate<T: Pooled>(
 ) -> Vec<T> {
     let c = kernels.len() / (k * k);
     let taps = channels_last_taps(kernels, c, k);
-    // The backbone's hidden activations are free now, and the decoder's shuffled activations
+    // The backbone's hidden activations are free now, and the upsampler's shuffled activations
     // want a buffer of their size later, when the correlation's is free again.
     let mut out = pool.take_largest::<T>(h * w * c);
     out.par_chunks_mut(CHUNK_PIXELS * c)

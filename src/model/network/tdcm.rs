@@ -1,6 +1,6 @@
 //! The Template-Aware Dynamic Convolution Matcher, split the way the service uses it: a
 //! [`TemplateEncoder`] turns a template into depthwise kernels once (cached per template ID) and a
-//! [`SearchMatcher`] runs a batch of search images, each against its own kernels, into the five
+//! [`SearchBranch`] runs a batch of search images, each against its own kernels, into the five
 //! output maps.
 
 use burn::nn::conv::{Conv2d, Conv2dConfig};
@@ -10,7 +10,7 @@ use burn::tensor::activation::{relu, sigmoid, tanh};
 use burn::tensor::module::conv2d;
 use burn::tensor::ops::ConvOptions;
 
-use super::backbone::{BATCH_NORM_EPS, Backbone, BackboneConfig, BackboneTrace, GeluGrn};
+use super::backbone::{BATCH_NORM_EPS, Backbone, BackboneConfig, BackboneTrace};
 
 /// Side of the square grid the network sees a template at (the official checkpoint: 36).
 /// It must be `8n + 4` so that the template features have an odd side (`2n + 1`) and the
@@ -26,7 +26,7 @@ pub const HEAD_SCALE_MAX: f32 = 2.0;
 pub struct TdcmConfig {
     #[config(default = "BackboneConfig::new()")]
     pub backbone: BackboneConfig,
-    /// Decoder width after the fusion conv (`conv1` outputs twice this).
+    /// Upsampler width after the fusion conv (`conv1` outputs twice this).
     #[config(default = 96)]
     pub decoder_channels: usize,
     /// Hidden width of each head.
@@ -40,7 +40,7 @@ impl TdcmConfig {
             template_encoder: TemplateEncoder {
                 backbone: self.backbone.init(device),
             },
-            search_matcher: SearchMatcher::new(self, device),
+            search_matcher: SearchBranch::new(self, device),
         }
     }
 }
@@ -49,7 +49,7 @@ impl TdcmConfig {
 #[derive(Module, Debug)]
 pub struct Tdcm {
     pub template_encoder: TemplateEncoder,
-    pub search_matcher: SearchMatcher,
+    pub search_matcher: SearchBranch,
 }
 
 /// Template branch: template image → per-channel correlation kernels.
@@ -63,23 +63,24 @@ impl TemplateEncoder {
     /// - `templates`: `[batch, 3, G, G]` with `G` = [`TEMPLATE_GRID`]
     /// - output: `[batch, 96, G/4, G/4]`, one depthwise kernel per channel
     pub fn forward(&self, templates: Tensor<4>) -> Tensor<4> {
-        self.forward_traced(templates, GeluGrn::Modules).0
+        self.forward_traced(templates).0
     }
 
-    /// Like [`TemplateEncoder::forward`], with the GELU+GRN path chosen, plus the backbone's
-    /// intermediates.
-    pub fn forward_traced(
-        &self,
-        templates: Tensor<4>,
-        gelu_grn: GeluGrn,
-    ) -> (Tensor<4>, BackboneTrace) {
-        let [_, _, h, w] = templates.dims();
-        assert!(
-            h % 8 == 4 && w % 8 == 4,
-            "template grid {h}x{w} is not 8n+4; this is a bug in the caller"
-        );
-        self.backbone.forward_traced(templates, gelu_grn)
+    /// Like [`TemplateEncoder::forward`], plus the backbone's intermediates.
+    pub fn forward_traced(&self, templates: Tensor<4>) -> (Tensor<4>, BackboneTrace) {
+        check_template_grid(&templates);
+        self.backbone.forward_traced(templates)
     }
+}
+
+/// Templates must come on an `8n+4` grid (the correlation's kernels are then odd-sized and
+/// centred); anything else is a bug in the caller, not bad input.
+pub(crate) fn check_template_grid(templates: &Tensor<4>) {
+    let [_, _, h, w] = templates.dims();
+    assert!(
+        h % 8 == 4 && w % 8 == 4,
+        "template grid {h}x{w} is not 8n+4; this is a bug in the caller"
+    );
 }
 
 /// The five output maps at the search image's resolution (`4*floor(H/4)` x `4*floor(W/4)`).
@@ -117,17 +118,18 @@ pub struct SearchTrace {
     pub bn2: Tensor<4>,
 }
 
-/// Search branch, correlation and decoder.
+/// Search branch: backbone, correlation, upsampler (the field `decoder`, named as in the
+/// checkpoint and our weight files) and heads.
 #[derive(Module, Debug)]
-pub struct SearchMatcher {
+pub struct SearchBranch {
     pub backbone: Backbone,
     /// 3x3 conv over the correlation (the checkpoint calls it `pointwise_conv`).
     pub fusion: Conv2d,
-    pub decoder: Decoder,
+    pub decoder: Upsampler,
     pub heads: Heads,
 }
 
-impl SearchMatcher {
+impl SearchBranch {
     fn new(config: &TdcmConfig, device: &Device) -> Self {
         let c = config.backbone.channels;
         let d = config.decoder_channels;
@@ -139,7 +141,7 @@ impl SearchMatcher {
         Self {
             backbone: config.backbone.init(device),
             fusion: conv3x3(c, c),
-            decoder: Decoder {
+            decoder: Upsampler {
                 conv1: conv3x3(c, 2 * d),
                 bn1: BatchNormConfig::new(2 * d)
                     .with_epsilon(BATCH_NORM_EPS)
@@ -159,7 +161,7 @@ impl SearchMatcher {
     /// - `kernels`: `[batch, 96, k, k]`, `k` odd, from [`TemplateEncoder::forward`]
     ///
     /// burn's modules throughout: differentiable and for any device. Inference on the host CPU
-    /// goes through [`super::InferenceNetwork`] instead.
+    /// goes through [`crate::model::InferenceNetwork`] instead.
     pub fn forward(&self, images: Tensor<4>, kernels: Tensor<4>) -> MatchMaps {
         let features = self.backbone.forward(images);
         let correlation = depthwise_correlation(features, kernels);
@@ -171,7 +173,7 @@ impl SearchMatcher {
         images: Tensor<4>,
         kernels: Tensor<4>,
     ) -> (MatchMaps, SearchTrace) {
-        let (features, backbone) = self.backbone.forward_traced(images, GeluGrn::Modules);
+        let (features, backbone) = self.backbone.forward_traced(images);
         let correlation = depthwise_correlation(features.clone(), kernels);
         let (maps, (fusion, bn1, bn2)) = self.maps_from_correlation(correlation.clone());
         let trace = SearchTrace {
@@ -223,7 +225,7 @@ pub fn depthwise_correlation(features: Tensor<4>, kernels: Tensor<4>) -> Tensor<
 
 /// Two (conv3x3 → BatchNorm → ReLU → PixelShuffle x2) stages: 1/4 resolution → full.
 #[derive(Module, Debug)]
-pub struct Decoder {
+pub struct Upsampler {
     pub conv1: Conv2d,
     pub bn1: BatchNorm,
     pub conv2: Conv2d,
@@ -231,7 +233,7 @@ pub struct Decoder {
     pub shuffle: PixelShuffle,
 }
 
-impl Decoder {
+impl Upsampler {
     /// # Shapes
     /// - `x`: `[batch, 96, h, w]` → `[batch, 24, 4h, 4w]` (plus both pre-ReLU BatchNorm outputs)
     fn forward(&self, x: Tensor<4>) -> (Tensor<4>, Tensor<4>, Tensor<4>) {

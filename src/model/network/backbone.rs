@@ -58,15 +58,6 @@ pub struct Backbone {
     pub norm: BatchNorm,
 }
 
-/// How a block computes GELU followed by GRN. The caller chooses; nothing process-wide decides.
-#[derive(Clone, Copy, Debug, PartialEq, Eq)]
-pub enum GeluGrn {
-    /// burn's modules: differentiable, any device (training, GPUs).
-    Modules,
-    /// The fused kernel of [`super::fused`]: inference on host memory, no gradients.
-    Fused,
-}
-
 /// Intermediate outputs, kept only when a parity test asks for them.
 pub struct BackboneTrace {
     pub stem: Tensor<4>,
@@ -78,23 +69,18 @@ impl Backbone {
     /// - `images`: `[batch, 3, H, W]`, normalised
     /// - output: `[batch, channels, H/4, W/4]`
     pub fn forward(&self, images: Tensor<4>) -> Tensor<4> {
-        self.forward_traced(images, GeluGrn::Modules).0
+        self.forward_traced(images).0
     }
 
-    /// Like [`Backbone::forward`], with the GELU+GRN path chosen, also returning the stem and
-    /// stage-1 outputs.
-    pub fn forward_traced(
-        &self,
-        images: Tensor<4>,
-        gelu_grn: GeluGrn,
-    ) -> (Tensor<4>, BackboneTrace) {
+    /// Like [`Backbone::forward`], also returning the stem and stage-1 outputs.
+    pub fn forward_traced(&self, images: Tensor<4>) -> (Tensor<4>, BackboneTrace) {
         let x = self.stem_conv.forward(images); // [b, 96, h, w]
         // LayerNorm over channels: work channels-last for the whole stage.
         let x = self.stem_norm.forward(x.permute([0, 2, 3, 1])); // [b, h, w, 96]
         let stem = x.clone().permute([0, 3, 1, 2]);
         let mut x = stem.clone();
         for block in &self.blocks {
-            x = block.forward(x, gelu_grn);
+            x = block.forward(x);
         }
         let stage1 = x.clone();
         let out = self.norm.forward(x); // [b, 96, h, w]
@@ -132,17 +118,11 @@ impl ConvNextBlock {
 
     /// # Shapes
     /// - `x`: `[batch, channels, h, w]` → same
-    pub fn forward(&self, x: Tensor<4>, gelu_grn: GeluGrn) -> Tensor<4> {
+    pub fn forward(&self, x: Tensor<4>) -> Tensor<4> {
         let y = self.conv_dw.forward(x.clone()); // [b, 96, h, w]
         let y = self.norm.forward(y.permute([0, 2, 3, 1])); // [b, h, w, 96]
         let y = self.fc1.forward(y); // [b, h, w, 384]
-        let y = match gelu_grn {
-            // Same function, two passes instead of many (see `fused`).
-            GeluGrn::Fused => {
-                super::fused::gelu_grn(y, self.grn.weight.val(), self.grn.bias.val(), GRN_EPS)
-            }
-            GeluGrn::Modules => self.grn.forward(self.activation.forward(y)),
-        };
+        let y = self.grn.forward(self.activation.forward(y));
         let y = self.fc2.forward(y); // [b, h, w, 96]
         x + y.permute([0, 3, 1, 2])
     }

@@ -25,13 +25,13 @@ struct CachedKernel {
 #[derive(Debug, Clone, Copy)]
 pub struct ReadTicket(u64);
 
-pub struct KernelCache {
+pub struct TemplateCache {
     cache: moka::sync::Cache<String, CachedKernel>,
     /// Changes seen so far; held while the cache changes, so a check and an insert are one step.
     changes: Mutex<u64>,
 }
 
-impl KernelCache {
+impl TemplateCache {
     /// At most `capacity` kernels; `evictions` counts the ones pushed out by size.
     pub fn new(capacity: u64, evictions: prometheus::IntCounter) -> Self {
         let cache = moka::sync::Cache::builder()
@@ -142,8 +142,8 @@ mod tests {
         })
     }
 
-    fn cache() -> KernelCache {
-        KernelCache::new(10, prometheus::IntCounter::new("e", "e").unwrap())
+    fn cache() -> TemplateCache {
+        TemplateCache::new(10, prometheus::IntCounter::new("e", "e").unwrap())
     }
 
     #[test]

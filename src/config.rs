@@ -1,13 +1,21 @@
 //! Service configuration, layered lowest to highest: embedded defaults, an optional TOML file
 //! (`--config`), `POSEMATCH__*` environment variables (`POSEMATCH__MAX_BATCH_SIZE=2`), then
-//! command-line flags. One flat namespace so every key has the same name in all four places.
+//! command-line flags. The keys are one flat namespace (the public contract: every key has the
+//! same name in all four places, `deploy/posematch.toml` lists them); [`Settings::load`] reads
+//! them as written ([`FileSettings`]), checks every value once and hands out typed sections —
+//! addresses as [`SocketAddr`], absent files as `None`, the template store as a
+//! [`StoreLocation`], the weights as a [`WeightsSource`] — that the rest of the service trusts.
 
+use std::net::SocketAddr;
 use std::path::{Path, PathBuf};
+use std::time::Duration;
 
 use serde::{Deserialize, Serialize};
 
 use crate::engine::store::StoreLocation;
+use crate::imaging::InputConvention;
 use crate::matcher::MatchOptions;
+use crate::model::{Precision, WeightsSource};
 
 /// Log line format.
 #[derive(Debug, Clone, Copy, PartialEq, Eq, Serialize, Deserialize)]
@@ -17,10 +25,11 @@ pub enum LogFormat {
     Json,
 }
 
-/// Everything `posematch serve` can be told.
+/// The settings as written: one flat namespace of keys, each as the file, the environment or a
+/// flag gives it. Only [`Settings::load`] reads these; everything else gets [`Settings`].
 #[derive(Debug, Clone, PartialEq, Serialize, Deserialize)]
 #[serde(deny_unknown_fields)]
-pub struct Settings {
+pub struct FileSettings {
     /// gRPC listen address.
     pub listen: String,
     /// Prometheus `/metrics` listen address; port 0 picks a free port; empty disables it.
@@ -33,7 +42,7 @@ pub struct Settings {
     /// AVX-512 BF16, else f32), `f32` (exact) or `bf16`.
     pub precision: crate::model::Precision,
     /// Most search images in one forward pass; a batch forms only from requests already
-    /// waiting, so a lone request never waits for one. 4 measured best on 2 cores (README).
+    /// waiting, so a lone request never waits for one. 4 measured best on 2 cores (docs/service.md, "Throughput").
     pub max_batch_size: usize,
     /// Most match requests waiting for the model; more get RESOURCE_EXHAUSTED.
     pub queue_size: usize,
@@ -87,7 +96,7 @@ pub struct Settings {
 
 /// The built-in defaults: `deploy/posematch.toml`, the documented file operators start from,
 /// compiled in (one place states them).
-pub const DEFAULTS_TOML: &str = include_str!("../../deploy/posematch.toml");
+pub const DEFAULTS_TOML: &str = include_str!("../deploy/posematch.toml");
 
 /// Flag values that override the file and environment (`None` = not given).
 #[derive(Debug, Clone, Default)]
@@ -109,8 +118,8 @@ pub struct Overrides {
 pub struct SettingsError(pub String);
 
 impl Settings {
-    /// Reads the layers; `environment` is normally `std::env::vars()` (a parameter so tests do
-    /// not have to mutate the process environment).
+    /// Reads the layers and checks every value; `environment` is normally `std::env::vars()`
+    /// (a parameter so tests do not have to mutate the process environment).
     pub fn load(
         file: Option<&Path>,
         environment: impl IntoIterator<Item = (String, String)>,
@@ -162,132 +171,227 @@ impl Settings {
         ] {
             builder = set(builder, key, path_string(value)).map_err(wrap)?;
         }
-        let settings: Settings = builder
+        let written: FileSettings = builder
             .build()
             .map_err(wrap)?
             .try_deserialize()
             .map_err(wrap)?;
-        settings.validate()?;
-        Ok(settings)
+        written.checked()
     }
+}
 
-    /// Which weights the service runs (`weights`; empty = the embedded default).
-    pub fn weights_source(&self) -> crate::model::WeightsSource {
-        crate::model::WeightsSource::from_path(Some(std::path::Path::new(&self.weights)))
-    }
-
-    /// Where templates are kept: `template_store`, else the directory `template_dir`.
-    pub fn store_location(&self) -> StoreLocation {
-        if self.template_store.is_empty() {
-            StoreLocation::Directory(self.template_dir.clone())
-        } else {
-            StoreLocation::parse(&self.template_store)
-                .expect("template_store was checked when the settings were loaded")
-        }
-    }
-
+/// Checked settings in sections, each value in the type that carries its meaning.
+#[derive(Debug, Clone)]
+pub struct Settings {
+    pub server: ServerSettings,
+    pub engine: EngineSettings,
+    pub store: StoreSettings,
+    pub security: SecuritySettings,
     /// The options a Match request's zero values stand for.
-    pub fn match_defaults(&self) -> MatchOptions {
-        MatchOptions {
+    pub match_defaults: MatchOptions,
+}
+
+/// Listening, limits on what a request may carry, logging and shutdown.
+#[derive(Debug, Clone)]
+pub struct ServerSettings {
+    pub listen: SocketAddr,
+    /// `None`: no Prometheus endpoint.
+    pub metrics_listen: Option<SocketAddr>,
+    pub log_format: LogFormat,
+    /// How long in-flight requests may finish after SIGTERM/Ctrl-C.
+    pub shutdown_grace: Duration,
+    pub reflection: bool,
+    pub max_message_bytes: usize,
+    pub max_image_pixels: u64,
+    pub max_concurrent_decodes: usize,
+}
+
+/// The model and how the model thread batches its work.
+#[derive(Debug, Clone)]
+pub struct EngineSettings {
+    pub weights: WeightsSource,
+    pub convention: InputConvention,
+    pub precision: Precision,
+    pub max_batch_size: usize,
+    pub queue_size: usize,
+    pub cache_size: u64,
+    pub max_network_pixels: u64,
+}
+
+/// Where templates persist.
+#[derive(Debug, Clone)]
+pub struct StoreSettings {
+    pub location: StoreLocation,
+    /// How long a database store may be unreachable before health reports NOT_SERVING.
+    pub database_grace: Duration,
+}
+
+/// TLS and bearer tokens; `None` where switched off.
+#[derive(Debug, Clone, Default)]
+pub struct SecuritySettings {
+    pub tls: Option<TlsFiles>,
+    pub auth_tokens_file: Option<PathBuf>,
+}
+
+/// The PEM files of a TLS endpoint.
+#[derive(Debug, Clone)]
+pub struct TlsFiles {
+    pub cert: PathBuf,
+    pub key: PathBuf,
+    /// Clients must present a certificate signed by one of these (mutual TLS).
+    pub client_ca: Option<PathBuf>,
+}
+
+impl FileSettings {
+    /// Checks every value once and converts it into its type; a bad value's error names its key.
+    fn checked(self) -> Result<Settings, SettingsError> {
+        let bad = |what: String| Err(SettingsError(what));
+        let match_defaults = MatchOptions {
             min_score: self.min_score,
             candidate_threshold: self.candidate_threshold,
             max_candidates: self.max_candidates,
             classical_fallback: self.classical_fallback,
             ..MatchOptions::default()
+        };
+        if let Err(e) = match_defaults.clone().validate() {
+            return bad(format!(
+                "{} = {} is invalid: use {}",
+                e.field, e.value, e.allowed
+            ));
         }
-    }
-
-    fn validate(&self) -> Result<(), SettingsError> {
-        let bad = |what: String| Err(SettingsError(what));
-        if let Err(message) = self.match_defaults().validate() {
-            return bad(message.replacen(' ', " = ", 1));
-        }
-        if self.listen.parse::<std::net::SocketAddr>().is_err() {
+        let Ok(listen) = self.listen.parse::<SocketAddr>() else {
             return bad(format!(
                 "listen = {:?} is not an address; use HOST:PORT, e.g. 0.0.0.0:50051",
-                self.listen
+                short(&self.listen)
             ));
-        }
-        if !self.metrics_listen.is_empty()
-            && self.metrics_listen.parse::<std::net::SocketAddr>().is_err()
-        {
-            return bad(format!(
-                "metrics_listen = {:?} is not an address; use HOST:PORT (port 0 = any free port) or \"\" to disable",
-                self.metrics_listen
-            ));
-        }
+        };
+        let metrics_listen = match self.metrics_listen.as_str() {
+            "" => None,
+            address => match address.parse::<SocketAddr>() {
+                Ok(address) => Some(address),
+                Err(_) => {
+                    return bad(format!(
+                        "metrics_listen = {:?} is not an address; use HOST:PORT (port 0 = any free port) or \"\" to disable",
+                        short(address)
+                    ));
+                }
+            },
+        };
         if let Err(e) = self.precision.check_machine() {
             return bad(e.to_string());
         }
-        if !(1..=64).contains(&self.max_batch_size) {
-            return bad(format!(
-                "max_batch_size = {} is out of range 1..=64",
-                self.max_batch_size
-            ));
-        }
-        if !(1..=100_000).contains(&self.queue_size) {
-            return bad(format!(
-                "queue_size = {} is out of range 1..=100000",
-                self.queue_size
-            ));
-        }
-        if !self.template_store.is_empty()
-            && let Err(message) = StoreLocation::parse(&self.template_store)
-        {
-            return bad(format!("template_store: {message}"));
-        }
-        if self.template_store.is_empty() && self.template_dir.as_os_str().is_empty() {
-            return bad("template_dir is empty: give a directory, or set template_store".into());
-        }
-        if !(1..=86_400).contains(&self.database_grace_seconds) {
-            return bad(format!(
-                "database_grace_seconds = {} is out of range 1..=86400",
-                self.database_grace_seconds
-            ));
-        }
+        in_range("max_batch_size", self.max_batch_size, 1, 64)?;
+        in_range("queue_size", self.queue_size, 1, 100_000)?;
+        let location = if self.template_store.is_empty() {
+            if self.template_dir.as_os_str().is_empty() {
+                return bad(
+                    "template_dir is empty: give a directory, or set template_store".into(),
+                );
+            }
+            StoreLocation::Directory(self.template_dir)
+        } else {
+            match StoreLocation::parse(&self.template_store) {
+                Ok(location) => location,
+                Err(message) => return bad(format!("template_store: {message}")),
+            }
+        };
+        in_range(
+            "database_grace_seconds",
+            self.database_grace_seconds,
+            1,
+            86_400,
+        )?;
         if self.cache_size == 0 {
             return bad("cache_size must be at least 1".into());
         }
-        if !(1024..=400_000_000).contains(&self.max_image_pixels) {
-            return bad(format!(
-                "max_image_pixels = {} is out of range 1024..=400000000",
-                self.max_image_pixels
-            ));
-        }
-        if !(1..=256).contains(&self.max_concurrent_decodes) {
-            return bad(format!(
-                "max_concurrent_decodes = {} is out of range 1..=256",
-                self.max_concurrent_decodes
-            ));
-        }
+        in_range("max_image_pixels", self.max_image_pixels, 1024, 400_000_000)?;
+        in_range(
+            "max_concurrent_decodes",
+            self.max_concurrent_decodes,
+            1,
+            256,
+        )?;
         let most = crate::matcher::plan::MAX_NETWORK_PIXELS;
-        if !(10_000..=most).contains(&self.max_network_pixels) {
-            return bad(format!(
-                "max_network_pixels = {} is out of range 10000..={most}",
-                self.max_network_pixels
-            ));
-        }
-        let set = |p: &PathBuf| !p.as_os_str().is_empty();
-        if set(&self.tls_cert) != set(&self.tls_key) {
-            return bad(
-                "tls_cert and tls_key go together: give both (PEM files) for TLS, or neither"
-                    .into(),
-            );
-        }
-        if set(&self.tls_client_ca) && !set(&self.tls_cert) {
-            return bad(
-                "tls_client_ca verifies client certificates and needs TLS: set tls_cert and tls_key too"
-                    .into(),
-            );
-        }
-        if !(1 << 16..=1 << 30).contains(&self.max_message_bytes) {
-            return bad(format!(
-                "max_message_bytes = {} is out of range 65536..=1073741824",
-                self.max_message_bytes
-            ));
-        }
-        Ok(())
+        in_range("max_network_pixels", self.max_network_pixels, 10_000, most)?;
+        in_range(
+            "max_message_bytes",
+            self.max_message_bytes,
+            1 << 16,
+            1 << 30,
+        )?;
+        let given = |p: PathBuf| (!p.as_os_str().is_empty()).then_some(p);
+        let client_ca = given(self.tls_client_ca);
+        let tls = match (given(self.tls_cert), given(self.tls_key)) {
+            (Some(cert), Some(key)) => Some(TlsFiles {
+                cert,
+                key,
+                client_ca,
+            }),
+            (None, None) if client_ca.is_some() => {
+                return bad(
+                    "tls_client_ca verifies client certificates and needs TLS: set tls_cert and tls_key too"
+                        .into(),
+                );
+            }
+            (None, None) => None,
+            _ => {
+                return bad(
+                    "tls_cert and tls_key go together: give both (PEM files) for TLS, or neither"
+                        .into(),
+                );
+            }
+        };
+        Ok(Settings {
+            server: ServerSettings {
+                listen,
+                metrics_listen,
+                log_format: self.log_format,
+                shutdown_grace: Duration::from_secs(self.shutdown_grace_seconds),
+                reflection: self.reflection,
+                max_message_bytes: self.max_message_bytes,
+                max_image_pixels: self.max_image_pixels,
+                max_concurrent_decodes: self.max_concurrent_decodes,
+            },
+            engine: EngineSettings {
+                weights: WeightsSource::from_path(Some(Path::new(&self.weights))),
+                convention: self.convention,
+                precision: self.precision,
+                max_batch_size: self.max_batch_size,
+                queue_size: self.queue_size,
+                cache_size: self.cache_size,
+                max_network_pixels: self.max_network_pixels,
+            },
+            store: StoreSettings {
+                location,
+                database_grace: Duration::from_secs(self.database_grace_seconds),
+            },
+            security: SecuritySettings {
+                tls,
+                auth_tokens_file: given(self.auth_tokens_file),
+            },
+            match_defaults,
+        })
     }
+}
+
+/// `value` within `low..=high`, or an error naming `key`.
+fn in_range<T: PartialOrd + std::fmt::Display>(
+    key: &str,
+    value: T,
+    low: T,
+    high: T,
+) -> Result<(), SettingsError> {
+    if value < low || value > high {
+        return Err(SettingsError(format!(
+            "{key} = {value} is out of range {low}..={high}"
+        )));
+    }
+    Ok(())
+}
+
+/// At most 100 characters of a value quoted in an error (an environment variable can be long).
+fn short(value: &str) -> String {
+    value.chars().take(100).collect()
 }
 
 fn wrap(e: config::ConfigError) -> SettingsError {
@@ -308,11 +412,12 @@ mod tests {
     #[test]
     fn defaults_file_environment_and_flags_layer_in_order() {
         let defaults = Settings::load(None, env(&[]), &Overrides::default()).unwrap();
-        assert_eq!(defaults.listen, "0.0.0.0:50051");
-        assert_eq!(defaults.template_dir, PathBuf::from("./data/templates"));
+        assert_eq!(defaults.server.listen, "0.0.0.0:50051".parse().unwrap());
         assert!(
-            matches!(defaults.store_location(), StoreLocation::Directory(d) if d == Path::new("./data/templates"))
+            matches!(&defaults.store.location, StoreLocation::Directory(d) if d == Path::new("./data/templates"))
         );
+        assert!(matches!(defaults.engine.weights, WeightsSource::Embedded));
+        assert!(defaults.security.tls.is_none() && defaults.security.auth_tokens_file.is_none());
         let database = Settings::load(
             None,
             env(&[("POSEMATCH__TEMPLATE_STORE", "postgres://app@db/posematch")]),
@@ -320,7 +425,7 @@ mod tests {
         )
         .unwrap();
         assert!(matches!(
-            database.store_location(),
+            database.store.location,
             StoreLocation::Postgres(_)
         ));
         let directory = Overrides {
@@ -329,9 +434,9 @@ mod tests {
         };
         let flagged = Settings::load(None, env(&[]), &directory).unwrap();
         assert!(
-            matches!(flagged.store_location(), StoreLocation::Directory(d) if d == Path::new("/srv/templates"))
+            matches!(&flagged.store.location, StoreLocation::Directory(d) if d == Path::new("/srv/templates"))
         );
-        assert_eq!(defaults.log_format, LogFormat::Text);
+        assert_eq!(defaults.server.log_format, LogFormat::Text);
 
         let dir = tempfile::tempdir().unwrap();
         let file = dir.path().join("posematch.toml");
@@ -350,10 +455,10 @@ mod tests {
             ..Overrides::default()
         };
         let s = Settings::load(Some(&file), environment, &overrides).unwrap();
-        assert_eq!(s.max_batch_size, 4); // file
-        assert_eq!(s.log_format, LogFormat::Json); // file
-        assert_eq!(s.queue_size, 16); // environment beats file
-        assert_eq!(s.listen, "127.0.0.1:3"); // flag beats environment
+        assert_eq!(s.engine.max_batch_size, 4); // file
+        assert_eq!(s.server.log_format, LogFormat::Json); // file
+        assert_eq!(s.engine.queue_size, 16); // environment beats file
+        assert_eq!(s.server.listen, "127.0.0.1:3".parse().unwrap()); // flag beats environment
     }
 
     #[test]
@@ -374,7 +479,7 @@ mod tests {
             precision.contains("precision") && precision.contains("bf16"),
             "{precision}"
         );
-        // bf16 starts exactly where the CPU has a bf16 kernel; elsewhere the start fails saying
+        // bf16 starts exactly where the CPU has bf16 instructions; elsewhere the start fails saying
         // so.
         let bf16 = Settings::load(
             None,
@@ -382,7 +487,10 @@ mod tests {
             &Overrides::default(),
         );
         match crate::model::Precision::Bf16.check_machine() {
-            Ok(()) => assert_eq!(bf16.unwrap().precision, crate::model::Precision::Bf16),
+            Ok(()) => assert_eq!(
+                bf16.unwrap().engine.precision,
+                crate::model::Precision::Bf16
+            ),
             Err(_) => assert!(bf16.unwrap_err().to_string().contains("AVX-512 BF16")),
         }
         assert!(err(&[("POSEMATCH__LISTEN", "nowhere")]).contains("listen"));

@@ -16,12 +16,28 @@
 //! 2. **Confirm** ([`Verifier::confirm`]), only the candidates that survive the screen: the
 //!    refinement's fine search and five-parameter alignment at full resolution, then the
 //!    similarity (ZNCC over the template's support) at the refined pose.
+//!
+//! [`verify_candidates`] runs both over one image's candidates: screen every candidate, confirm
+//! the best distinct survivors, then hand the confirmed poses to [`super::selection`].
 
-use super::{
-    AngleScaleGrid, GrayImage32, Scored, TemplatePoints, align, align_from, fine_search,
-    stayed_near,
+use std::time::Instant;
+
+use rayon::prelude::*;
+
+use super::options::MatchOptions;
+use super::selection::{ANGLE_MARGIN_DEG, select};
+use crate::geometry::{Pose, rotated_iou, wrap_angle_deg};
+use crate::imaging::GrayImage32;
+use crate::refine::{
+    AngleScaleGrid, Scored, TemplatePoints, align, align_from, fine_search, stayed_near,
 };
-use crate::geometry::{Pose, wrap_angle_deg};
+
+/// Screen ZNCC below which a candidate is not worth confirming: a true object at the right
+/// angle scores far above it even with its centre a few pixels off (docs/verification.md).
+pub const SCREEN_MIN: f32 = 0.3;
+
+/// Survivors of the screen confirmed beyond `max_instances` (near-misses of the screen ranking).
+pub const SPARE_SURVIVORS: usize = 1;
 
 /// Largest object size (pixels, the geometric mean of its sides at the expected scale) on the
 /// screening level: the image is halved until the object is smaller than this. The mean, not
@@ -91,7 +107,7 @@ pub struct Verified {
 /// `2·ln M`, M being the number of effectively independent poses the search tries per image
 /// (candidates x angles x scales; the chance level of the best of M unrelated correlations is
 /// about `sqrt(2·ln M / N)` for N independent samples). M = 10 000, fitted on multi-instance
-/// scenes of the tuning photos (README "What a score means").
+/// scenes of the tuning photos (docs/accuracy.md, "What a score means").
 const CHANCE_LOG_HYPOTHESES: f32 = 18.4;
 
 /// The chance level is capped here so that a very smooth template can still score (it then
@@ -390,5 +406,91 @@ impl<'a> Verifier<'a> {
             },
             None => pose,
         }
+    }
+}
+
+/// A candidate that passed the screen, with its screened box for the duplicate check.
+struct Survivor {
+    candidate: Pose,
+    screen: Screened,
+    corners: [(f32, f32); 4],
+}
+
+/// The answers of one job and where the verification's time went.
+pub struct Verification {
+    pub poses: Vec<Pose>,
+    pub screen_ms: f64,
+    pub confirm_ms: f64,
+}
+
+/// Verifies `candidates` (network poses in image coordinates, `network_score` set) of a
+/// `template` in `image`, then selects the answers.
+pub fn verify_candidates(
+    template: &GrayImage32,
+    (tw, th): (f32, f32),
+    image: &GrayImage32,
+    candidates: Vec<Pose>,
+    options: &MatchOptions,
+) -> Verification {
+    if candidates.is_empty() {
+        return Verification {
+            poses: Vec::new(),
+            screen_ms: 0.0,
+            confirm_ms: 0.0,
+        };
+    }
+    let start = Instant::now();
+    let scales = options.scale_range.map(|r| (r.min, r.max));
+    let angle_range = options.angle_range;
+    let verifier = Verifier::new(template, image, scales, move |angle| {
+        angle_range.is_none_or(|r| r.contains_within(angle, ANGLE_MARGIN_DEG))
+    });
+    let mut screened: Vec<(Pose, Screened)> = candidates
+        .into_par_iter()
+        .map(|candidate| (candidate, verifier.screen(&candidate)))
+        .collect();
+    // Best screen first; near-duplicates (the same object seen by two peaks) need no second
+    // confirmation.
+    screened.sort_by(|a, b| b.1.score.total_cmp(&a.1.score));
+    let budget = options.max_instances + SPARE_SURVIVORS;
+    let mut survivors: Vec<Survivor> = Vec::new();
+    for (candidate, screen) in screened {
+        if survivors.len() == budget || screen.score < SCREEN_MIN {
+            break;
+        }
+        let corners = screen.pose.corners(tw, th);
+        if survivors
+            .iter()
+            .all(|other| rotated_iou(&corners, &other.corners) <= options.max_overlap)
+        {
+            survivors.push(Survivor {
+                candidate,
+                screen,
+                corners,
+            });
+        }
+    }
+    let screen_ms = start.elapsed().as_secs_f64() * 1e3;
+    let start = Instant::now();
+    let confirmed: Vec<Pose> = survivors
+        .into_par_iter()
+        .map(
+            |Survivor {
+                 candidate, screen, ..
+             }| {
+                let verified = verifier.confirm(&screen, &candidate);
+                Pose {
+                    score: verified.score,
+                    network_score: candidate.network_score,
+                    ..verified.pose
+                }
+            },
+        )
+        .collect();
+    let poses = select(confirmed, options, tw, th);
+    Verification {
+        poses,
+        screen_ms,
+        confirm_ms: start.elapsed().as_secs_f64() * 1e3,
     }
 }

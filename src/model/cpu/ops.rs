@@ -1,4 +1,4 @@
-//! Pieces the host CPU kernels ([`super::host_backbone`], [`super::host_decoder`]) share:
+//! Pieces the CPU implementation (the backbone and the upsampler) share:
 //! reading parameters out of burn, the f32 matrix product with a bias, and the memory-bound
 //! per-pixel loops.
 //!
@@ -12,14 +12,14 @@ use burn::prelude::*;
 use multiversion::multiversion;
 
 /// A parameter vector's values.
-pub(super) fn values(t: Tensor<1>) -> Vec<f32> {
+pub(crate) fn values(t: Tensor<1>) -> Vec<f32> {
     t.into_data()
         .try_into_vec()
         .expect("parameters are f32; this is a bug")
 }
 
 /// `out[m, n] = lhs[m, k] · rhs[k, n] + bias[n]`, row-major, on this thread.
-pub(super) fn matmul_bias(
+pub fn matmul_bias(
     lhs: &[f32],
     m: usize,
     k: usize,
@@ -79,13 +79,13 @@ pub(super) fn matmul_bias(
 /// bf16 forward went to `memset` and the kernel's page clearing). A taken buffer's contents
 /// are unspecified: whoever takes one overwrites all of it.
 #[derive(Default)]
-pub(super) struct BufferPool {
+pub(crate) struct BufferPool {
     f32s: Vec<Vec<f32>>,
     u16s: Vec<Vec<u16>>,
 }
 
 /// Element types the pool keeps: f32, and bf16 bits (`u16`) for the bf16 products' inputs.
-pub(super) trait Pooled: Copy + Default + Send + Sync {
+pub(crate) trait Pooled: Copy + Default + Send + Sync {
     fn shelf(pool: &mut BufferPool) -> &mut Vec<Vec<Self>>;
     /// `values` in this element type, into `out` (same length).
     fn convert_into(values: &[f32], out: &mut [Self]);
@@ -112,7 +112,7 @@ impl Pooled for u16 {
 }
 
 /// `values` converted to `T`, in parallel chunks (a pooled buffer).
-pub(super) fn converted<T: Pooled>(values: &[f32], pool: &mut BufferPool) -> Vec<T> {
+pub(crate) fn converted<T: Pooled>(values: &[f32], pool: &mut BufferPool) -> Vec<T> {
     use rayon::prelude::*;
     const CHUNK: usize = 64 * 1024;
     let mut out = pool.take::<T>(values.len());
@@ -125,7 +125,7 @@ pub(super) fn converted<T: Pooled>(values: &[f32], pool: &mut BufferPool) -> Vec
 impl BufferPool {
     /// A buffer of `len` values: the smallest kept one that holds them, else the largest,
     /// grown (only growth is zeroed).
-    pub(super) fn take<T: Pooled>(&mut self, len: usize) -> Vec<T> {
+    pub(crate) fn take<T: Pooled>(&mut self, len: usize) -> Vec<T> {
         let shelf = T::shelf(self);
         let fits = (0..shelf.len())
             .filter(|&i| shelf[i].capacity() >= len)
@@ -142,9 +142,9 @@ impl BufferPool {
 
     /// [`BufferPool::take`] from the largest kept buffer, whatever the smallest fitting one:
     /// for an activation whose neighbours in time are larger (the correlation takes the
-    /// backbone's hidden activations' buffer, so the decoder's next, larger request finds it
+    /// backbone's hidden activations' buffer, so the upsampler's next, larger request finds it
     /// free again instead of growing a second one).
-    pub(super) fn take_largest<T: Pooled>(&mut self, len: usize) -> Vec<T> {
+    pub(crate) fn take_largest<T: Pooled>(&mut self, len: usize) -> Vec<T> {
         let shelf = T::shelf(self);
         let largest = (0..shelf.len()).max_by_key(|&i| shelf[i].capacity());
         let mut buffer = largest.map(|i| shelf.swap_remove(i)).unwrap_or_default();
@@ -153,14 +153,14 @@ impl BufferPool {
     }
 
     /// Keeps `buffer` for a later [`BufferPool::take`].
-    pub(super) fn give<T: Pooled>(&mut self, buffer: Vec<T>) {
+    pub(crate) fn give<T: Pooled>(&mut self, buffer: Vec<T>) {
         if buffer.capacity() > 0 {
             T::shelf(self).push(buffer);
         }
     }
 
     /// Everything `other` keeps, kept here too.
-    pub(super) fn absorb(&mut self, other: BufferPool) {
+    pub(crate) fn absorb(&mut self, other: BufferPool) {
         self.f32s.extend(other.f32s);
         self.u16s.extend(other.u16s);
     }
@@ -215,7 +215,7 @@ fn layer_norm_row(row: &mut [f32], gamma: &[f32], beta: &[f32], eps: f32) {
 
 /// LayerNorm over every row of `rows` (`[pixels, gamma.len()]`), in place.
 #[multiversion(targets("x86_64+avx512f+avx512vl+avx512bw+avx512dq", "x86_64+avx2+fma"))]
-pub(super) fn layer_norm_rows(rows: &mut [f32], gamma: &[f32], beta: &[f32], eps: f32) {
+pub(crate) fn layer_norm_rows(rows: &mut [f32], gamma: &[f32], beta: &[f32], eps: f32) {
     for row in rows.chunks_exact_mut(gamma.len()) {
         layer_norm_row(row, gamma, beta, eps);
     }
@@ -235,7 +235,7 @@ pub(super) fn layer_norm_rows(rows: &mut [f32], gamma: &[f32], beta: &[f32], eps
 /// columns, ascending), so all paths give the same bits.
 #[multiversion(targets("x86_64+avx512f+avx512vl+avx512bw+avx512dq", "x86_64+avx2+fma"))]
 #[allow(clippy::too_many_arguments)]
-pub(super) fn depthwise_pixels(
+pub(crate) fn depthwise_pixels(
     input: &[f32],
     height: usize,
     width: usize,
@@ -413,10 +413,10 @@ unsafe fn slide_avx512<const K: usize>(
 /// GELU (exact form) in place over `[pixels, channels]` rows, adding each channel's sum of
 /// squares of the result to `squares` (`[channels]`).
 #[multiversion(targets("x86_64+avx512f+avx512vl+avx512bw+avx512dq", "x86_64+avx2+fma"))]
-pub(super) fn gelu_with_squares(rows: &mut [f32], squares: &mut [f32]) {
+pub(crate) fn gelu_with_squares(rows: &mut [f32], squares: &mut [f32]) {
     for row in rows.chunks_exact_mut(squares.len()) {
         for (v, s) in row.iter_mut().zip(squares.iter_mut()) {
-            let g = super::fused::gelu_f32(*v);
+            let g = super::gelu_grn::gelu_f32(*v);
             *v = g;
             *s += g * g;
         }
@@ -425,7 +425,7 @@ pub(super) fn gelu_with_squares(rows: &mut [f32], squares: &mut [f32]) {
 
 /// `rows[p] += add[p]` elementwise (same lengths).
 #[multiversion(targets("x86_64+avx512f+avx512vl+avx512bw+avx512dq", "x86_64+avx2+fma"))]
-pub(super) fn add_in_place(rows: &mut [f32], add: &[f32]) {
+pub(crate) fn add_in_place(rows: &mut [f32], add: &[f32]) {
     for (r, a) in rows.iter_mut().zip(add) {
         *r += *a;
     }
@@ -433,7 +433,7 @@ pub(super) fn add_in_place(rows: &mut [f32], add: &[f32]) {
 
 /// `rows[p, c] = rows[p, c] · scale[c] + shift[c]` over `[pixels, channels]` rows.
 #[multiversion(targets("x86_64+avx512f+avx512vl+avx512bw+avx512dq", "x86_64+avx2+fma"))]
-pub(super) fn scale_shift_rows(rows: &mut [f32], scale: &[f32], shift: &[f32]) {
+pub(crate) fn scale_shift_rows(rows: &mut [f32], scale: &[f32], shift: &[f32]) {
     for row in rows.chunks_exact_mut(scale.len()) {
         for ((v, s), b) in row.iter_mut().zip(scale).zip(shift) {
             *v = *v * *s + *b;
@@ -443,7 +443,7 @@ pub(super) fn scale_shift_rows(rows: &mut [f32], scale: &[f32], shift: &[f32]) {
 
 /// `max(v, 0)` in place.
 #[multiversion(targets("x86_64+avx512f+avx512vl+avx512bw+avx512dq", "x86_64+avx2+fma"))]
-pub(super) fn relu_in_place(values: &mut [f32]) {
+pub(crate) fn relu_in_place(values: &mut [f32]) {
     for v in values.iter_mut() {
         *v = v.max(0.0);
     }

@@ -1,31 +1,20 @@
-//! Precision on generated pairs with exact ground truth (the paper's Algorithm 1): refinement
+//! Pose accuracy on generated pairs with exact ground truth (the paper's Algorithm 1): refinement
 //! recovers the true pose from a rough start, and with the official checkpoint it sharpens the
 //! network's poses without ever losing an object the network found.
 
 mod common;
 
 use burn::prelude::*;
-use common::{reference_dir, structured_photo_dir};
+use common::{official_matcher, reference_dir, s1_5_spec, structured_photo_dir};
 use posematch::evaluation::{ANY_PEAK, Paths, match_pair, pair_error};
 use posematch::geometry::Pose;
 use posematch::imaging::GrayImage32;
 use posematch::imaging::InputConvention;
 use posematch::matcher::{MatchOptions, Matcher};
-use posematch::model::load_weights;
 use posematch::refine::refine_pose;
-use posematch::synth::{DEFAULT_MIN_STRUCTURE, Level, PairSpec, PhotoSet, make_pair};
+use posematch::synth::{PhotoSet, make_pair};
 use rand::rngs::StdRng;
 use rand::{Rng, SeedableRng};
-
-fn spec() -> PairSpec {
-    PairSpec {
-        level: Level::S1_5,
-        template_width: 36,
-        template_height: 36,
-        search_side: 224,
-        min_structure: DEFAULT_MIN_STRUCTURE,
-    }
-}
 
 #[test]
 fn refinement_recovers_the_true_pose_from_a_rough_start() {
@@ -34,7 +23,7 @@ fn refinement_recovers_the_true_pose_from_a_rough_start() {
     let mut rng = StdRng::seed_from_u64(5);
     let (mut centre, mut angle, mut scale) = (Vec::new(), Vec::new(), Vec::new());
     for index in 0..20 {
-        let pair = make_pair(&photos, &spec(), 1, index).unwrap();
+        let pair = make_pair(&photos, &s1_5_spec(), 1, index).unwrap();
         let truth = pair.truth[0];
         // A start like the network's: pixels, degrees and tens of percent off.
         let rough = Pose {
@@ -67,15 +56,13 @@ fn refinement_recovers_the_true_pose_from_a_rough_start() {
 #[test]
 fn refinement_sharpens_the_official_network_and_never_loses_an_object() {
     let Some(dir) = reference_dir() else { return };
-    let device = Device::flex();
-    let model = load_weights(&dir.join("tdcm-official.pth"), &device).unwrap();
-    let matcher = Matcher::new(model, device, InputConvention::ImagenetRgb);
+    let matcher = official_matcher(&dir);
     let photos_dir = structured_photo_dir();
     let photos = PhotoSet::load(photos_dir.path(), 224).unwrap();
     let options = MatchOptions {
         max_instances: 1,
         min_score: Some(0.01),
-        refine: false,
+        verify: false,
         ..MatchOptions::default()
     }
     .validate()
@@ -84,7 +71,7 @@ fn refinement_sharpens_the_official_network_and_never_loses_an_object() {
     let (mut coarse_angle, mut refined_angle) = (0.0, 0.0);
     let pairs = 16;
     for index in 0..pairs {
-        let pair = make_pair(&photos, &spec(), 2, index).unwrap();
+        let pair = make_pair(&photos, &s1_5_spec(), 2, index).unwrap();
         let truth = pair.truth[0];
         let encoded = matcher.encode_template(&pair.template).unwrap();
         let outcome = matcher.match_one(&encoded, &pair.search, &options).unwrap();
@@ -140,7 +127,7 @@ fn three_paths(matcher: &Matcher, pairs: u64) -> [usize; 3] {
     .unwrap();
     let mut found = [0; 3];
     for index in 0..pairs {
-        let pair = make_pair(&photos, &spec(), 3, index).unwrap();
+        let pair = make_pair(&photos, &s1_5_spec(), 3, index).unwrap();
         let truth = pair.truth[0];
         let run = match_pair(
             matcher,
@@ -197,9 +184,7 @@ fn verified_candidates_find_what_the_best_peak_misses_with_the_embedded_weights(
 #[test]
 fn verified_candidates_keep_what_the_official_network_finds() {
     let Some(dir) = reference_dir() else { return };
-    let device = Device::flex();
-    let model = load_weights(&dir.join("tdcm-official.pth"), &device).unwrap();
-    let matcher = Matcher::new(model, device, InputConvention::ImagenetRgb);
+    let matcher = official_matcher(&dir);
     let pairs = 16;
     let [network, refined, verified] = three_paths(&matcher, pairs);
     println!(

@@ -1,0 +1,219 @@
+//! Match and MatchStream: answers, raw buffers, regions of interest and streams; the official
+//! checkpoint over gRPC (accuracy on the fixture; skips without `../shared/reference`); the
+//! classical matcher over gRPC.
+
+use std::time::Duration;
+
+use posematch::grpc::ModelLoader;
+use posematch::grpc::proto::{self, image::Data, raw_image::Format};
+use posematch::imaging::InputConvention;
+use posematch::matcher::Matcher;
+use posematch::model::{load_weights, select_device};
+use tonic::Code;
+
+use crate::common;
+use crate::common::service::*;
+
+#[tokio::test(flavor = "multi_thread", worker_threads = 2)]
+async fn match_and_stream_answer_with_request_ids_and_timings() {
+    let dir = tempfile::tempdir().unwrap();
+    let (server, mut client) = start(&settings(dir.path(), &[]), untrained_model()).await;
+    client
+        .register_template(register_request("t", template_png(1)))
+        .await
+        .unwrap();
+
+    let image = png(&scene(160, 128, 1));
+    let answer = client
+        .r#match(match_request("t", image.clone(), "frame-1"))
+        .await
+        .unwrap()
+        .into_inner();
+    assert_eq!(answer.request_id, "frame-1");
+    assert_eq!(answer.template_id, "t");
+    assert_eq!((answer.image_width, answer.image_height), (160, 128));
+    let timings = answer.timings.expect("timings");
+    assert!(timings.total_ms > 0.0 && timings.network_ms > 0.0);
+    assert!(answer.poses.len() <= 10);
+
+    // A raw camera buffer (BGR8) of the same frame gives the same answer as the PNG.
+    let rgb = scene(160, 128, 1);
+    let bgr: Vec<u8> = rgb.pixels().flat_map(|p| [p[2], p[1], p[0]]).collect();
+    let mut raw_request = match_request("t", Vec::new(), "frame-raw");
+    raw_request.image = Some(proto::Image {
+        data: Some(Data::Raw(proto::RawImage {
+            width: 160,
+            height: 128,
+            format: Format::Bgr8 as i32,
+            pixels: bgr,
+        })),
+    });
+    let raw_answer = client.r#match(raw_request).await.unwrap().into_inner();
+    assert_same_poses(&raw_answer.poses, &answer.poses);
+
+    // ROI: the answer is in full-image coordinates and inside the region.
+    let mut roi_request = match_request("t", image.clone(), "frame-roi");
+    roi_request.options.as_mut().unwrap().roi = Some(proto::RegionOfInterest {
+        x: 40,
+        y: 20,
+        width: 100,
+        height: 90,
+    });
+    roi_request.options.as_mut().unwrap().min_score = 0.01;
+    let roi_answer = client.r#match(roi_request).await.unwrap().into_inner();
+    for pose in &roi_answer.poses {
+        assert!(
+            (40.0..140.0).contains(&pose.x) && (20.0..110.0).contains(&pose.y),
+            "{pose:?}"
+        );
+    }
+
+    // Streaming: answers come back in order with their request IDs.
+    let requests: Vec<proto::MatchRequest> = (0..4)
+        .map(|i| match_request("t", image.clone(), &format!("s{i}")))
+        .collect();
+    let mut stream = client
+        .match_stream(tokio_stream::iter(requests))
+        .await
+        .unwrap()
+        .into_inner();
+    let mut ids = Vec::new();
+    while let Some(answer) = stream.message().await.unwrap() {
+        ids.push(answer.request_id);
+    }
+    assert_eq!(ids, ["s0", "s1", "s2", "s3"]);
+
+    // A bad request in a stream ends it with a status naming the request.
+    let requests = vec![
+        match_request("t", image.clone(), "ok-1"),
+        match_request("missing", image.clone(), "bad-2"),
+        match_request("t", image.clone(), "never-3"),
+    ];
+    let mut stream = client
+        .match_stream(tokio_stream::iter(requests))
+        .await
+        .unwrap()
+        .into_inner();
+    assert_eq!(stream.message().await.unwrap().unwrap().request_id, "ok-1");
+    let error = stream.message().await.unwrap_err();
+    assert_eq!(error.code(), Code::NotFound);
+    assert!(error.message().contains("bad-2"), "{}", error.message());
+
+    let metrics = metrics_text(&server).await;
+    assert!(counter(&metrics, "posematch_requests_total", "rpc=\"Match\"") >= 3.0);
+    assert!(counter(&metrics, "posematch_batch_size_count", "") >= 7.0);
+    assert!(counter(&metrics, "posematch_template_cache_hits_total", "") >= 7.0);
+    server.shutdown(Duration::from_secs(5)).await;
+}
+
+#[tokio::test(flavor = "multi_thread", worker_threads = 2)]
+async fn official_checkpoint_over_grpc_finds_the_fixture_pose() {
+    let Some(reference) = common::reference_dir() else {
+        return;
+    };
+    let bytes = common::read_fixture(&reference);
+    let st = safetensors::SafeTensors::deserialize(&bytes).unwrap();
+    let tmp = tempfile::tempdir().unwrap();
+    let (template, search) = (tmp.path().join("t.png"), tmp.path().join("s.png"));
+    common::write_bgr_png(&st, "b1.template_src_bgr_u8", &template);
+    common::write_bgr_png(&st, "b1.search_src_bgr_u8", &search);
+    let weights = reference.join("tdcm-official.pth");
+    let loader: ModelLoader = Box::new(move || {
+        let device = select_device().map_err(|e| e.to_string())?;
+        let model = load_weights(&weights, &device).map_err(|e| e.to_string())?;
+        Ok(Matcher::new(model, device, InputConvention::Gray))
+    });
+    let (server, mut client) = start(
+        &settings(tmp.path().join("templates").as_path(), &[]),
+        loader,
+    )
+    .await;
+    client
+        .register_template(register_request("b1", std::fs::read(&template).unwrap()))
+        .await
+        .unwrap();
+    let mut request = match_request("b1", std::fs::read(&search).unwrap(), "b1");
+    request.options.as_mut().unwrap().max_instances = 1;
+    let answer = client.r#match(request).await.unwrap().into_inner();
+    let pose = &answer.poses[0];
+    let official = common::official_decode(&bytes, "b1");
+    let (ox, oy) = (
+        official["center_xy"][0].as_f64().unwrap() as f32,
+        official["center_xy"][1].as_f64().unwrap() as f32,
+    );
+    let distance = ((pose.x - ox).powi(2) + (pose.y - oy).powi(2)).sqrt();
+    println!("b1 over gRPC: {pose:?}; official centre ({ox:.2}, {oy:.2}), off by {distance:.2} px");
+    assert!(distance < 0.5, "{distance}");
+    let angle = (pose.angle_deg - official["angle_deg"].as_f64().unwrap() as f32).rem_euclid(360.0);
+    assert!(angle.min(360.0 - angle) < 1.0, "{angle}");
+    server.shutdown(Duration::from_secs(5)).await;
+}
+
+#[tokio::test(flavor = "multi_thread", worker_threads = 2)]
+async fn the_classical_matcher_answers_over_grpc_without_the_network() {
+    let dir = tempfile::tempdir().unwrap();
+    // Untrained weights: whatever is found here, the network did not find it.
+    let (server, mut client) = start(&settings(dir.path(), &[]), untrained_model()).await;
+    client
+        .register_template(register_request("part", template_png(3)))
+        .await
+        .unwrap();
+    let classical = |options: proto::MatchOptions| proto::MatchRequest {
+        template_id: "part".into(),
+        image: encoded(png(&scene(200, 200, 3))),
+        options: Some(options),
+        request_id: "ncc".into(),
+    };
+    let answer = client
+        .r#match(classical(proto::MatchOptions {
+            method: proto::Method::Ncc as i32,
+            max_instances: 1,
+            ..Default::default()
+        }))
+        .await
+        .unwrap()
+        .into_inner();
+    let pose = answer
+        .poses
+        .first()
+        .expect("the classical matcher finds the crop");
+    // The template is the 36x40 crop at (60, 70): its centre is (77.5, 89.5).
+    assert!(
+        (pose.x - 77.5).abs() < 0.5 && (pose.y - 89.5).abs() < 0.5,
+        "{pose:?}"
+    );
+    assert!(pose.angle_deg.abs() < 1.0, "{pose:?}");
+    assert!(
+        (pose.scale_x - 1.0).abs() < 0.03 && (pose.scale_y - 1.0).abs() < 0.03,
+        "{pose:?}"
+    );
+    assert!(pose.score > 0.9, "{pose:?}");
+    assert_eq!(pose.network_score, 0.0, "no network was involved");
+
+    // A search that would hold the cores for minutes is refused, saying what to narrow.
+    let status = client
+        .r#match(classical(proto::MatchOptions {
+            method: proto::Method::Ncc as i32,
+            scale_min: 0.05,
+            scale_max: 20.0,
+            ..Default::default()
+        }))
+        .await
+        .unwrap_err();
+    assert_eq!(status.code(), Code::InvalidArgument, "{status:?}");
+    assert!(status.message().contains("roi"), "{}", status.message());
+    let status = client
+        .r#match(classical(proto::MatchOptions {
+            method: 7,
+            ..Default::default()
+        }))
+        .await
+        .unwrap_err();
+    assert_eq!(status.code(), Code::InvalidArgument, "{status:?}");
+    assert!(
+        status.message().contains("METHOD_NCC"),
+        "{}",
+        status.message()
+    );
+    drop(server);
+}

@@ -1,0 +1,355 @@
+//! The template registry over gRPC: the RPCs' contract, a restart that keeps every
+//! acknowledged template, stray files in the template directory, SIGKILL during a replacement,
+//! and a template directory the server cannot write.
+
+use std::time::Duration;
+
+use posematch::grpc::proto;
+use tonic::Code;
+
+use crate::common::service::*;
+
+#[tokio::test(flavor = "multi_thread", worker_threads = 2)]
+async fn registry_rpcs_follow_the_contract() {
+    let dir = tempfile::tempdir().unwrap();
+    let (server, mut client) = start(&settings(dir.path(), &[]), untrained_model()).await;
+
+    let info = client
+        .register_template(register_request("bracket-a", template_png(1)))
+        .await
+        .unwrap()
+        .into_inner();
+    assert_eq!(
+        (info.template_id.as_str(), info.width, info.height),
+        ("bracket-a", 36, 40)
+    );
+    assert_eq!(info.labels["line"], "4");
+    assert_eq!(info.content_sha256.len(), 64);
+
+    // Same image, same ID: a no-op that returns the original record.
+    let again = client
+        .register_template(register_request("bracket-a", template_png(1)))
+        .await
+        .unwrap()
+        .into_inner();
+    assert_eq!(again, info);
+    // A different image under the same ID needs `replace`.
+    let clash = client
+        .register_template(register_request("bracket-a", template_png(2)))
+        .await
+        .unwrap_err();
+    assert_eq!(clash.code(), Code::AlreadyExists, "{clash:?}");
+    assert!(clash.message().contains("replace"));
+    let mut replace = register_request("bracket-a", template_png(2));
+    replace.replace = true;
+    let replaced = client
+        .register_template(replace)
+        .await
+        .unwrap()
+        .into_inner();
+    assert_ne!(replaced.content_sha256, info.content_sha256);
+
+    // An empty ID is derived from the content, identically each time.
+    let derived = client
+        .register_template(register_request("", template_png(3)))
+        .await
+        .unwrap()
+        .into_inner();
+    assert!(
+        derived.template_id.starts_with("tpl-"),
+        "{}",
+        derived.template_id
+    );
+    let derived_again = client
+        .register_template(register_request("", template_png(3)))
+        .await
+        .unwrap()
+        .into_inner();
+    assert_eq!(derived_again.template_id, derived.template_id);
+
+    // Paged listing visits every template once, in ID order.
+    for i in 0..5 {
+        client
+            .register_template(register_request(&format!("part-{i}"), template_png(10 + i)))
+            .await
+            .unwrap();
+    }
+    let mut seen = Vec::new();
+    let mut token = String::new();
+    loop {
+        let page = client
+            .list_templates(proto::ListTemplatesRequest {
+                page_size: 3,
+                page_token: token.clone(),
+            })
+            .await
+            .unwrap()
+            .into_inner();
+        assert!(page.templates.len() <= 3);
+        seen.extend(page.templates.into_iter().map(|t| t.template_id));
+        if page.next_page_token.is_empty() {
+            break;
+        }
+        token = page.next_page_token;
+    }
+    let mut expected = seen.clone();
+    expected.sort();
+    expected.dedup();
+    assert_eq!(seen, expected);
+    assert_eq!(seen.len(), 7);
+
+    let got = client
+        .get_template(proto::GetTemplateRequest {
+            template_id: "part-3".into(),
+            ..Default::default()
+        })
+        .await
+        .unwrap()
+        .into_inner();
+    assert_eq!(got.template_id, "part-3");
+
+    let deleted = client
+        .delete_template(proto::DeleteTemplateRequest {
+            template_id: "part-3".into(),
+        })
+        .await
+        .unwrap()
+        .into_inner();
+    assert!(deleted.deleted);
+    let deleted_twice = client
+        .delete_template(proto::DeleteTemplateRequest {
+            template_id: "part-3".into(),
+        })
+        .await
+        .unwrap()
+        .into_inner();
+    assert!(!deleted_twice.deleted);
+    let gone = client
+        .get_template(proto::GetTemplateRequest {
+            template_id: "part-3".into(),
+            ..Default::default()
+        })
+        .await
+        .unwrap_err();
+    assert_eq!(gone.code(), Code::NotFound);
+
+    let metrics = metrics_text(&server).await;
+    assert_eq!(
+        counter(&metrics, "posematch_templates ", ""),
+        6.0,
+        "{metrics}"
+    );
+    assert!(counter(&metrics, "posematch_requests_total", "ALREADY_EXISTS") >= 1.0);
+    server.shutdown(Duration::from_secs(5)).await;
+}
+
+#[tokio::test(flavor = "multi_thread", worker_threads = 2)]
+async fn a_restart_keeps_every_acknowledged_template() {
+    let dir = tempfile::tempdir().unwrap();
+    let settings = settings(dir.path(), &[]);
+    let (server, mut client) = start(&settings, untrained_model()).await;
+    let mut infos = Vec::new();
+    for i in 0..3 {
+        let info = client
+            .register_template(register_request(&format!("keep-{i}"), template_png(i)))
+            .await
+            .unwrap()
+            .into_inner();
+        infos.push(info);
+    }
+    let image = png(&scene(128, 128, 0));
+    let before = client
+        .r#match(match_request("keep-1", image.clone(), "before"))
+        .await
+        .unwrap()
+        .into_inner();
+    server.shutdown(Duration::from_secs(5)).await;
+
+    let (server, mut client) = start(&settings, untrained_model()).await;
+    for info in &infos {
+        let got = client
+            .get_template(proto::GetTemplateRequest {
+                template_id: info.template_id.clone(),
+                ..Default::default()
+            })
+            .await
+            .unwrap()
+            .into_inner();
+        assert_eq!(&got, info);
+    }
+    // The kernel is re-encoded lazily from the stored image: a cache miss, then the match works.
+    let after = client
+        .r#match(match_request("keep-1", image, "after"))
+        .await
+        .unwrap()
+        .into_inner();
+    assert_eq!(after.image_width, before.image_width);
+    let metrics = metrics_text(&server).await;
+    assert_eq!(
+        counter(&metrics, "posematch_template_cache_misses_total", ""),
+        1.0
+    );
+    server.shutdown(Duration::from_secs(5)).await;
+}
+
+/// A foreign `notes.json`, a zero-byte metadata file and a stray image in the template
+/// directory are moved aside and counted; the server starts and serves.
+#[tokio::test(flavor = "multi_thread", worker_threads = 2)]
+async fn stray_files_in_the_template_directory_are_set_aside_at_start() {
+    let dir = tempfile::tempdir().unwrap();
+    std::fs::write(dir.path().join("notes.json"), br#"{"owner": "line 4"}"#).unwrap();
+    let zero_byte = format!("{}.json", "ab".repeat(32));
+    std::fs::write(dir.path().join(&zero_byte), b"").unwrap();
+    std::fs::write(dir.path().join("photo.png"), b"not a template").unwrap();
+    let (server, mut client) = start(&settings(dir.path(), &[]), untrained_model()).await;
+    client
+        .register_template(register_request("t", template_png(1)))
+        .await
+        .expect("the server works");
+    let metrics = metrics_text(&server).await;
+    assert_eq!(
+        counter(&metrics, "posematch_store_files_set_aside_total", ""),
+        3.0,
+        "{metrics}"
+    );
+    let mut aside: Vec<String> = std::fs::read_dir(dir.path().join("set-aside"))
+        .unwrap()
+        .map(|e| e.unwrap().file_name().to_string_lossy().into_owned())
+        .collect();
+    aside.sort();
+    assert_eq!(aside, [zero_byte.as_str(), "notes.json", "photo.png"]);
+    let info = get_with_image(&mut client, "t").await;
+    assert_eq!(audited_content_sha256(&info), info.content_sha256);
+    server.shutdown(Duration::from_secs(30)).await;
+}
+
+/// SIGKILL while a template is being replaced, over and over: after every restart the image
+/// GetTemplate returns hashes to the metadata it reports, Match can use the template, and the
+/// template is the last acknowledged image or the one whose replacement was cut short.
+#[tokio::test(flavor = "multi_thread", worker_threads = 2)]
+async fn kill_9_during_replace_never_separates_metadata_from_pixels() {
+    let dir = tempfile::tempdir().unwrap();
+    let templates = dir.path().join("templates");
+    let images = [template_png(1), template_png(2)];
+    let frame = png(&scene(128, 128, 1));
+    let mut hashes: Vec<String> = Vec::new();
+    let (mut disagreements, mut unacknowledged_kept) = (0, 0);
+    let mut acknowledged: Option<String> = None;
+    const ROUNDS: u64 = 50;
+    for round in 0..ROUNDS {
+        let server = ChildServer::start_in(&templates, |_| {});
+        let mut client = server.client().await;
+        if round == 0 {
+            for (k, image) in images.iter().enumerate() {
+                let mut request = register_request("t", image.clone());
+                request.replace = true;
+                let info = client
+                    .register_template(request)
+                    .await
+                    .unwrap()
+                    .into_inner();
+                assert_eq!(info.content_sha256.len(), 64);
+                hashes.push(info.content_sha256);
+                if k == 1 {
+                    acknowledged = hashes.last().cloned();
+                }
+            }
+        }
+        let info = get_with_image(&mut client, "t").await;
+        if audited_content_sha256(&info) != info.content_sha256 {
+            disagreements += 1;
+        }
+        assert!(
+            hashes.contains(&info.content_sha256),
+            "round {round}: {info:?}"
+        );
+        if Some(&info.content_sha256) != acknowledged.as_ref() {
+            unacknowledged_kept += 1;
+        }
+        client
+            .r#match(match_request("t", frame.clone(), "after restart"))
+            .await
+            .unwrap_or_else(|s| panic!("round {round}: Match cannot use the template: {s:?}"));
+        // Replace back and forth until the kill; remember what was acknowledged.
+        let current = hashes
+            .iter()
+            .position(|h| *h == info.content_sha256)
+            .unwrap();
+        let replacing = {
+            let (mut client, images) = (client.clone(), images.clone());
+            tokio::spawn(async move {
+                let mut last_acknowledged = None;
+                for k in current + 1.. {
+                    let mut request = register_request("t", images[k % 2].clone());
+                    request.replace = true;
+                    match client.register_template(request).await {
+                        Ok(reply) => last_acknowledged = Some(reply.into_inner().content_sha256),
+                        Err(_) => break,
+                    }
+                }
+                last_acknowledged
+            })
+        };
+        // Deliberate, not a wait for anything: each round's kill lands at another point of the
+        // replacements.
+        tokio::time::sleep(Duration::from_millis(5 + (round * 17) % 80)).await;
+        server.kill9();
+        if let Some(hash) = replacing.await.unwrap() {
+            acknowledged = Some(hash);
+        }
+    }
+    println!(
+        "{ROUNDS} rounds of kill -9 during replace: {disagreements} disagreements; {unacknowledged_kept} restarts found the replacement that was cut short committed"
+    );
+    assert_eq!(disagreements, 0);
+}
+
+/// A template directory the server cannot write (a read-only volume) turns health NOT_SERVING
+/// with a log line that says why. As root (CI), the server runs as `nobody` so that file
+/// permissions apply to it.
+#[tokio::test(flavor = "multi_thread", worker_threads = 2)]
+async fn a_read_only_template_directory_reports_not_serving() {
+    use std::os::unix::fs::{MetadataExt, PermissionsExt};
+    use std::os::unix::process::CommandExt;
+    let dir = tempfile::tempdir().unwrap();
+    let templates = dir.path().join("templates");
+    std::fs::create_dir(&templates).unwrap();
+    std::fs::set_permissions(dir.path(), std::fs::Permissions::from_mode(0o755)).unwrap();
+    std::fs::set_permissions(&templates, std::fs::Permissions::from_mode(0o555)).unwrap();
+    let root = std::fs::metadata("/proc/self").unwrap().uid() == 0;
+    // Launched, not started: this server never turns SERVING.
+    let server = ChildServer::launch_in(&templates, |command| {
+        if root {
+            command.uid(65534).gid(65534);
+        }
+    });
+    // Polled for up to 2 minutes: the server loads the model before it checks the directory.
+    let mut said = false;
+    for _ in 0..2400 {
+        said = server.logged("not writable");
+        if said {
+            break;
+        }
+        tokio::time::sleep(Duration::from_millis(50)).await;
+    }
+    assert!(
+        said,
+        "no log line says why: {:?}",
+        server.log.lock().unwrap()
+    );
+    assert_eq!(
+        server.health().await,
+        tonic_health::pb::health_check_response::ServingStatus::NotServing as i32
+    );
+    let status = server
+        .client()
+        .await
+        .register_template(register_request("t", template_png(1)))
+        .await
+        .unwrap_err();
+    assert_eq!(status.code(), Code::Internal, "{status:?}");
+    assert!(
+        !status.message().contains("/tmp"),
+        "a server path leaked: {status:?}"
+    );
+}
