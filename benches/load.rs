@@ -12,16 +12,19 @@
 #[global_allocator]
 static ALLOCATOR: mimalloc::MiMalloc = mimalloc::MiMalloc;
 
+#[allow(dead_code)]
+#[path = "../tests/common/service.rs"]
+mod service;
+
 use std::path::PathBuf;
 use std::time::{Duration, Instant};
 
-use posematch::config::{Overrides, Settings};
-use posematch::grpc::proto::pose_matcher_client::PoseMatcherClient;
 use posematch::grpc::proto::{self, image::Data};
 use posematch::grpc::{ModelLoader, RunningServer};
 use posematch::imaging::InputConvention;
 use posematch::matcher::Matcher;
-use posematch::model::{TdcmConfig, load_weights, select_device};
+use posematch::model::{load_weights, select_device};
+use service::{counter, metrics_text, png, scene, settings, start, untrained_model};
 
 fn env_list(name: &str, default: &str) -> Vec<usize> {
     std::env::var(name)
@@ -49,38 +52,14 @@ fn loader() -> (ModelLoader, &'static str) {
         });
         (loader, "official checkpoint")
     } else {
-        let loader: ModelLoader = Box::new(|| {
-            let device = select_device().map_err(|e| e.to_string())?;
-            Ok(Matcher::new(
-                TdcmConfig::new().init(&device),
-                device,
-                InputConvention::ImagenetRgb,
-            ))
-        });
-        (loader, "untrained network")
+        (untrained_model(), "untrained network")
     }
 }
 
 /// A 224x224 textured frame and a 36x36 crop of it (the template, present once, unrotated).
 fn frame_and_template() -> (Vec<u8>, Vec<u8>) {
-    let frame = image::RgbImage::from_fn(224, 224, |x, y| {
-        let (fx, fy) = (x as f32, y as f32);
-        let a = ((fx * 0.11).sin() * (fy * 0.07).cos() * 0.5 + 0.5) * 255.0;
-        let b = ((fx * 0.031 + fy * 0.053).sin() * 0.5 + 0.5) * 255.0;
-        let c = (((x / 17 + y / 13) % 3) * 100) as f32;
-        image::Rgb([a as u8, b as u8, c as u8])
-    });
+    let frame = scene(224, 224, 0);
     let template = image::imageops::crop_imm(&frame, 94, 80, 36, 36).to_image();
-    let png = |image: &image::RgbImage| {
-        let mut bytes = Vec::new();
-        image
-            .write_to(
-                &mut std::io::Cursor::new(&mut bytes),
-                image::ImageFormat::Png,
-            )
-            .unwrap();
-        bytes
-    };
     (png(&frame), png(&template))
 }
 
@@ -94,26 +73,16 @@ struct Run {
 
 async fn run(batch: usize, clients: usize, seconds: u64, max_requests: u64) -> Run {
     let dir = tempfile::tempdir().unwrap();
-    let environment = vec![
-        ("POSEMATCH__LISTEN".to_string(), "127.0.0.1:0".to_string()),
-        (
-            "POSEMATCH__METRICS_LISTEN".to_string(),
-            "127.0.0.1:0".to_string(),
-        ),
-        ("POSEMATCH__MAX_BATCH_SIZE".to_string(), batch.to_string()),
-        ("POSEMATCH__QUEUE_SIZE".to_string(), "256".to_string()),
-    ];
-    let overrides = Overrides {
-        template_dir: Some(dir.path().to_owned()),
-        ..Overrides::default()
-    };
-    let settings = Settings::load(None, environment, &overrides).unwrap();
+    let batch_setting = batch.to_string();
+    let settings = settings(
+        dir.path(),
+        &[
+            ("max_batch_size", batch_setting.as_str()),
+            ("queue_size", "256"),
+        ],
+    );
     let (loader, _) = loader();
-    let mut server = RunningServer::start(&settings, loader).await.unwrap();
-    server.ready().await.unwrap();
-    let mut client = PoseMatcherClient::connect(format!("http://{}", server.grpc_addr))
-        .await
-        .unwrap();
+    let (server, mut client) = start(&settings, loader).await;
     let (frame, template) = frame_and_template();
     client
         .register_template(proto::RegisterTemplateRequest {
@@ -163,7 +132,7 @@ async fn run(batch: usize, clients: usize, seconds: u64, max_requests: u64) -> R
             })
         })
         .collect();
-    let batches_before = batch_stats(&server);
+    let batches_before = batch_stats(&server).await;
     let mut latencies = Vec::new();
     for worker in workers {
         latencies.extend(worker.await.unwrap());
@@ -171,7 +140,7 @@ async fn run(batch: usize, clients: usize, seconds: u64, max_requests: u64) -> R
     let elapsed = start.elapsed().as_secs_f64();
     latencies.sort_by(f64::total_cmp);
     let pct = |p: f64| latencies[((latencies.len() - 1) as f64 * p).round() as usize];
-    let batches_after = batch_stats(&server);
+    let batches_after = batch_stats(&server).await;
     let mean_batch =
         (batches_after.0 - batches_before.0) / (batches_after.1 - batches_before.1).max(1.0);
     server.shutdown(Duration::from_secs(30)).await;
@@ -185,26 +154,11 @@ async fn run(batch: usize, clients: usize, seconds: u64, max_requests: u64) -> R
 }
 
 /// (sum, count) of the model thread's batch sizes so far, from `/metrics`.
-fn batch_stats(server: &RunningServer) -> (f64, f64) {
-    use std::io::{Read, Write};
-    let addr = server.metrics_addr.expect("metrics enabled");
-    let mut stream = std::net::TcpStream::connect(addr).unwrap();
-    write!(
-        stream,
-        "GET /metrics HTTP/1.1\r\nHost: x\r\nConnection: close\r\n\r\n"
-    )
-    .unwrap();
-    let mut text = String::new();
-    stream.read_to_string(&mut text).unwrap();
-    let value = |name: &str| {
-        text.lines()
-            .find(|l| l.starts_with(name))
-            .and_then(|l| l.rsplit(' ').next()?.parse::<f64>().ok())
-            .unwrap_or(0.0)
-    };
+async fn batch_stats(server: &RunningServer) -> (f64, f64) {
+    let metrics = metrics_text(server).await;
     (
-        value("posematch_batch_size_sum"),
-        value("posematch_batch_size_count"),
+        counter(&metrics, "posematch_batch_size_sum", ""),
+        counter(&metrics, "posematch_batch_size_count", ""),
     )
 }
 

@@ -11,15 +11,16 @@
 #[global_allocator]
 static ALLOCATOR: mimalloc::MiMalloc = mimalloc::MiMalloc;
 
+#[allow(dead_code)]
+#[path = "../tests/common/service.rs"]
+mod service;
+
 use std::time::{Duration, Instant};
 
-use posematch::config::{Overrides, Settings};
+use posematch::grpc::RunningServer;
 use posematch::grpc::proto::pose_matcher_client::PoseMatcherClient;
 use posematch::grpc::proto::{self, image::Data};
-use posematch::grpc::{ModelLoader, RunningServer};
-use posematch::imaging::InputConvention;
-use posematch::matcher::Matcher;
-use posematch::model::{TdcmConfig, select_device};
+use service::{counter, metrics_text, png, settings, start, untrained_model};
 use tonic::transport::Channel;
 
 fn env_number(name: &str, default: u64) -> u64 {
@@ -40,28 +41,6 @@ fn memory_mib() -> (f64, f64) {
             .map_or(f64::NAN, |kib| kib / 1024.0)
     };
     (field("VmRSS:"), field("VmHWM:"))
-}
-
-fn untrained() -> ModelLoader {
-    Box::new(|| {
-        let device = select_device().map_err(|e| e.to_string())?;
-        Ok(Matcher::new(
-            TdcmConfig::new().init(&device),
-            device,
-            InputConvention::ImagenetRgb,
-        ))
-    })
-}
-
-fn png(image: &image::RgbImage) -> Vec<u8> {
-    let mut bytes = Vec::new();
-    image
-        .write_to(
-            &mut std::io::Cursor::new(&mut bytes),
-            image::ImageFormat::Png,
-        )
-        .unwrap();
-    bytes
 }
 
 /// A distinct 36x36 template for every index (its content hash differs).
@@ -88,57 +67,30 @@ fn frame() -> Vec<u8> {
     }))
 }
 
+async fn report(stage: &str, server: &RunningServer) {
+    let (rss, peak) = memory_mib();
+    let metrics = metrics_text(server).await;
+    let metric = |name: &str| counter(&metrics, name, "");
+    println!(
+        "{stage:<44} RSS {rss:>7.1} MiB  peak {peak:>7.1} MiB  templates {:>6}  cache hits {:>5} misses {:>5} evictions {:>5}",
+        metric("posematch_templates "),
+        metric("posematch_template_cache_hits_total"),
+        metric("posematch_template_cache_misses_total"),
+        metric("posematch_template_cache_evictions_total"),
+    );
+}
+
+/// A server on `dir` with an untrained network and `cache` encoded templates in memory.
 async fn start_server(
     dir: &std::path::Path,
     cache: u64,
 ) -> (RunningServer, PoseMatcherClient<Channel>) {
-    let environment = vec![
-        ("POSEMATCH__LISTEN".to_string(), "127.0.0.1:0".to_string()),
-        (
-            "POSEMATCH__METRICS_LISTEN".to_string(),
-            "127.0.0.1:0".to_string(),
-        ),
-        ("POSEMATCH__CACHE_SIZE".to_string(), cache.to_string()),
-    ];
-    let overrides = Overrides {
-        template_dir: Some(dir.to_owned()),
-        ..Overrides::default()
-    };
-    let settings = Settings::load(None, environment, &overrides).unwrap();
-    let mut server = RunningServer::start(&settings, untrained()).await.unwrap();
-    server.ready().await.unwrap();
-    let client = PoseMatcherClient::connect(format!("http://{}", server.grpc_addr))
-        .await
-        .unwrap();
-    (server, client)
-}
-
-fn metric(server: &RunningServer, name: &str) -> f64 {
-    use std::io::{Read, Write};
-    let addr = server.metrics_addr.expect("metrics enabled");
-    let mut stream = std::net::TcpStream::connect(addr).unwrap();
-    write!(
-        stream,
-        "GET /metrics HTTP/1.1\r\nHost: x\r\nConnection: close\r\n\r\n"
+    let cache = cache.to_string();
+    start(
+        &settings(dir, &[("cache_size", cache.as_str())]),
+        untrained_model(),
     )
-    .unwrap();
-    let mut text = String::new();
-    stream.read_to_string(&mut text).unwrap();
-    text.lines()
-        .find(|l| l.starts_with(name))
-        .and_then(|l| l.rsplit(' ').next()?.parse::<f64>().ok())
-        .unwrap_or(0.0)
-}
-
-fn report(stage: &str, server: &RunningServer) {
-    let (rss, peak) = memory_mib();
-    println!(
-        "{stage:<44} RSS {rss:>7.1} MiB  peak {peak:>7.1} MiB  templates {:>6}  cache hits {:>5} misses {:>5} evictions {:>5}",
-        metric(server, "posematch_templates"),
-        metric(server, "posematch_template_cache_hits_total"),
-        metric(server, "posematch_template_cache_misses_total"),
-        metric(server, "posematch_template_cache_evictions_total"),
-    );
+    .await
 }
 
 /// Matches `count` templates spread evenly over all `total` IDs.
@@ -168,7 +120,7 @@ async fn match_spread(client: &mut PoseMatcherClient<Channel>, total: u64, count
 async fn run(total: u64, cache: u64) {
     let dir = tempfile::tempdir().unwrap();
     let (server, mut client) = start_server(dir.path(), cache).await;
-    report("started, empty registry", &server);
+    report("started, empty registry", &server).await;
     let start = Instant::now();
     for i in 0..total {
         client
@@ -183,23 +135,23 @@ async fn run(total: u64, cache: u64) {
             .await
             .unwrap();
         if (i + 1) % (total / 4).max(1) == 0 {
-            report(&format!("registered {}", i + 1), &server);
+            report(&format!("registered {}", i + 1), &server).await;
         }
     }
     let per_template = start.elapsed().as_secs_f64() * 1e3 / total as f64;
     println!("registration: {per_template:.2} ms per template (encode + durable write)");
     let ms = match_spread(&mut client, total, 200).await;
-    report("200 matches spread over all IDs", &server);
+    report("200 matches spread over all IDs", &server).await;
     println!("matching with cache misses: {ms:.1} ms per request (96x96 frame, no refinement)");
     server.shutdown(Duration::from_secs(5)).await;
 
     let restart = Instant::now();
     let (server, mut client) = start_server(dir.path(), cache).await;
     let restart_ms = restart.elapsed().as_secs_f64() * 1e3;
-    report("restarted on the same directory", &server);
+    report("restarted on the same directory", &server).await;
     println!("restart until SERVING: {restart_ms:.0} ms (metadata only; kernels load lazily)");
     let ms = match_spread(&mut client, total, 200).await;
-    report("200 matches after the restart", &server);
+    report("200 matches after the restart", &server).await;
     println!("matching after the restart: {ms:.1} ms per request");
     let listed = client
         .list_templates(proto::ListTemplatesRequest {
