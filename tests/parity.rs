@@ -116,8 +116,8 @@ fn bf16_heads_stay_close_to_the_fixture_where_the_cpu_has_bf16_instructions() {
     let Some(dir) = reference_dir() else { return };
     if Precision::Bf16.check_machine().is_err() {
         common::not_on_this_machine(
-            "bf16 instructions",
-            "neither AMX tiles nor AVX-512 BF16 on this CPU: bf16 cannot run here",
+            "a CPU with bf16 instructions",
+            "neither AMX tiles nor AVX-512 BF16 here: bf16 cannot run",
         );
         return;
     }

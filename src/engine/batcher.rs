@@ -19,7 +19,7 @@ use std::panic::{AssertUnwindSafe, catch_unwind};
 use std::sync::Arc;
 use std::time::{Duration, Instant};
 
-use crossbeam_channel::{Receiver, Sender, TrySendError, select_biased};
+use crossbeam_channel::{Receiver, Sender, TrySendError, select};
 use tokio::sync::{oneshot, watch};
 
 use super::metrics::Metrics;
@@ -130,9 +130,9 @@ pub struct ModelGone;
 /// Handle to the model thread; cheap to share. The thread ends when every handle is dropped.
 ///
 /// Two queues: searches wait in a bounded one (a full queue refuses at once), template
-/// encodings in an unbounded one that the thread serves first, so that a registration never
-/// fails because the line is busy (encodings come one per registration or cache miss, and
-/// each caller waits for its own).
+/// encodings in an unbounded one, so that a registration never fails because the line is busy
+/// (encodings come one per registration or cache miss, and each caller waits for its own). The
+/// thread takes from both fairly ([`Queues::next`]).
 #[derive(Clone)]
 pub struct Batcher {
     searches: Sender<(MatchWork, Instant)>,
@@ -277,17 +277,18 @@ struct Queues {
     encodings: Receiver<EncodeWork>,
 }
 
-/// The next work, encodings first; `None` once every [`Batcher`] handle is gone.
+/// The next work; `None` once every [`Batcher`] handle is gone.
 enum Next {
     Search(MatchWork, Instant),
     Encode(EncodeWork),
 }
 
 impl Queues {
-    /// Blocks for the next work, telling the model once when it has been idle for
-    /// `idle_release`.
+    /// Blocks for the next work, telling the pipeline once when it has been idle for
+    /// `idle_release`. When both queues hold work either may come first (`select!` picks at
+    /// random), so a stream of registrations cannot starve the searches, nor the reverse.
     fn next(&self, pipeline: &impl MatchPipeline, idle_release: Duration) -> Option<Next> {
-        let waited = select_biased! {
+        let waited = select! {
             recv(self.encodings) -> work => Some(work.ok().map(Next::Encode)),
             recv(self.searches) -> work => Some(work.ok().map(|(w, t)| Next::Search(w, t))),
             default(idle_release) => None,
@@ -296,7 +297,7 @@ impl Queues {
             return next.or_else(|| self.next_when_one_closed());
         }
         pipeline.idle();
-        select_biased! {
+        select! {
             recv(self.encodings) -> work => work.ok().map(Next::Encode),
             recv(self.searches) -> work => work.ok().map(|(w, t)| Next::Search(w, t)),
         }
@@ -313,13 +314,19 @@ impl Queues {
             .ok()
     }
 
-    /// Work already waiting, encodings first, without blocking.
-    fn waiting(&self) -> Option<Next> {
-        self.encodings
-            .try_recv()
-            .map(Next::Encode)
-            .or_else(|_| self.searches.try_recv().map(|(w, t)| Next::Search(w, t)))
-            .ok()
+    /// Work already waiting, without blocking: encodings first while no search has joined the
+    /// batch, then searches only (a batch that has begun does not wait behind encodings).
+    fn waiting(&self, batch_started: bool) -> Option<Next> {
+        let search = || self.searches.try_recv().map(|(w, t)| Next::Search(w, t));
+        if batch_started {
+            search().ok()
+        } else {
+            self.encodings
+                .try_recv()
+                .map(Next::Encode)
+                .or_else(|_| search())
+                .ok()
+        }
     }
 }
 
@@ -348,7 +355,7 @@ fn run_model_thread(
                 Next::Search(work, queued_at) => batch.push((work, queued_at)),
             }
             if batch.len() < max_batch_size {
-                next = queues.waiting();
+                next = queues.waiting(!batch.is_empty());
             }
         }
         metrics.queue_depth.set(queues.searches.len() as i64);
@@ -601,11 +608,17 @@ mod tests {
         // time pass on purpose; nothing waits for it.)
         std::thread::sleep(TEST_IDLE_RELEASE * 4);
         assert!(h.idles.try_recv().is_err(), "idle reported while busy");
+        let released = Instant::now();
         h.release_batch();
         assert_eq!(answer(first).outcome.poses[0].x, 100.0);
         h.idles
             .recv_timeout(Duration::from_secs(30))
             .expect("an idle report after a quiet period");
+        assert!(
+            released.elapsed() >= TEST_IDLE_RELEASE,
+            "idle reported {:?} after the work, before a quiet period",
+            released.elapsed()
+        );
         // One quiet stretch is reported once, however long it lasts.
         std::thread::sleep(TEST_IDLE_RELEASE * 4);
         assert!(

@@ -344,6 +344,10 @@ async fn report_health(
                     tracing::error!("the model thread ended; health reports NOT_SERVING");
                 }
                 match &store {
+                    Err(e @ StoreError::Full(_)) => tracing::error!(
+                        error = %e,
+                        "the template store is full; health reports NOT_SERVING until there is space"
+                    ),
                     Err(e @ StoreError::Io { .. }) => tracing::error!(
                         error = %e,
                         "the template directory is not writable (check the volume's mount and permissions); health reports NOT_SERVING until it is"

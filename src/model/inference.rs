@@ -408,8 +408,22 @@ impl CpuSearch {
         pose: PoseHeads,
         trace: bool,
     ) -> (Vec<f32>, Vec<CpuSampleTrace>) {
-        let image_len = batch.images.len() / batch.batch;
-        let kernel_len = batch.kernels.len() / batch.batch;
+        if batch.batch == 0 {
+            return (Vec::new(), Vec::new());
+        }
+        let image_len = 3 * batch.height * batch.width;
+        let kernel_len = self.backbone.channels() * batch.kernel_side * batch.kernel_side;
+        assert!(
+            batch.images.len() == batch.batch * image_len
+                && batch.kernels.len() == batch.batch * kernel_len,
+            "{} image and {} kernel values for {} samples of {}x{} and kernels {k}x{k}; this is a bug",
+            batch.images.len(),
+            batch.kernels.len(),
+            batch.batch,
+            batch.height,
+            batch.width,
+            k = batch.kernel_side,
+        );
         let [map_h, map_w] = batch.map_size();
         // Every value is written (the pose heads' skipped pixels hold NaN), so the maps may
         // come from the pool: a caller that hands them back ([`InferenceNetwork::recycle`])
@@ -432,7 +446,9 @@ impl CpuSearch {
                     per_sample: 5 * map_h * map_w,
                 },
             );
-            traces.extend(traced);
+            if trace {
+                traces.push(traced.expect("a traced sample returns its trace"));
+            }
         }
         (maps, traces)
     }

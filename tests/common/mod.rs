@@ -26,7 +26,7 @@ pub const GRPCURL: &str = "grpcurl";
 pub const POSTGRESQL: &str = "PostgreSQL";
 
 /// The variables that made one dependency's absence a failure before [`unavailable`] looked at
-/// `CI`; still honoured (`.ci/run` sets them).
+/// `CI`; still honoured for anyone who sets them by hand.
 const REQUIRED_BY: [(&str, &str); 3] = [
     (REFERENCE, "POSEMATCH_REQUIRE_REFERENCE"),
     (GRPCURL, "POSEMATCH_REQUIRE_GRPCURL"),

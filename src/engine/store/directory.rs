@@ -391,10 +391,15 @@ impl DirectoryStore {
     fn write_atomically(&self, path: &Path, bytes: &[u8]) -> Result<(), StoreError> {
         let name = path.file_name().and_then(|n| n.to_str()).unwrap_or("file");
         let tmp = self.dir.join(format!(".tmp-{name}-{}", std::process::id()));
-        let mut file = File::create(&tmp).map_err(io_error(&tmp))?;
-        file.write_all(bytes).map_err(io_error(&tmp))?;
-        file.sync_all().map_err(io_error(&tmp))?;
-        drop(file);
+        let written = File::create(&tmp).and_then(|mut file| {
+            file.write_all(bytes)?;
+            file.sync_all()
+        });
+        if let Err(e) = written {
+            // A full disk leaves no partial file behind to hold its space.
+            let _ = fs::remove_file(&tmp);
+            return Err(io_error(&tmp)(e));
+        }
         fs::rename(&tmp, path).map_err(io_error(path))?;
         self.sync_dir()
     }

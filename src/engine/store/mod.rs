@@ -106,7 +106,7 @@ pub enum StoreError {
     #[error("template database: {0}")]
     Database(String),
     /// No room left for a template (disk or quota full, the database out of disk): the request
-    /// may succeed once an operator frees space; nothing was half-written.
+    /// may succeed once an operator frees space; no partial file is left behind.
     #[error(
         "template store is full ({0}); delete templates you no longer need or ask the operator to free space"
     )]
@@ -416,6 +416,7 @@ fn io_error(path: &Path) -> impl FnOnce(std::io::Error) -> StoreError + '_ {
     use std::io::ErrorKind;
     move |source| match source.kind() {
         ErrorKind::StorageFull | ErrorKind::QuotaExceeded | ErrorKind::FileTooLarge => {
+            tracing::warn!(path = %path.display(), error = %source, "the template directory is full");
             StoreError::Full("no space left on the template directory's disk".into())
         }
         _ => StoreError::Io {

@@ -547,7 +547,8 @@ fn pool_error(e: PoolError) -> StoreError {
 /// Connection trouble (worth retrying) is [`StoreError::Unavailable`]; anything the database
 /// itself refused is [`StoreError::Database`].
 fn db_error(e: tokio_postgres::Error) -> StoreError {
-    if e.code() == Some(&SqlState::DISK_FULL) || e.code() == Some(&SqlState::OUT_OF_MEMORY) {
+    if e.code() == Some(&SqlState::DISK_FULL) {
+        tracing::warn!(error = %e, "the template database's disk is full");
         return StoreError::Full("the template database has no space left".into());
     }
     let transient = match e.code() {
