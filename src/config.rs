@@ -46,7 +46,7 @@ pub struct FileSettings {
     pub max_batch_size: usize,
     /// Most match requests waiting for the model; more get RESOURCE_EXHAUSTED.
     pub queue_size: usize,
-    /// Most encoded template kernels kept in memory (each ~31 kB plus the template in grey).
+    /// Most encoded templates kept in memory (each ~31 kB plus the template in grey).
     pub cache_size: u64,
     /// Where registered templates are kept: a directory, or `postgres://…` for a database
     /// shared by replicas. Empty: the directory `template_dir`.

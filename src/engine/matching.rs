@@ -42,7 +42,7 @@ impl Engine {
         roi: Option<Roi>,
         deadline: Option<Instant>,
     ) -> Result<MatchAnswer, EngineError> {
-        let template = self.kernel(template_id).await?;
+        let template = self.encoded_template(template_id).await?;
         let (image, offset) = match roi {
             None => (image, (0.0, 0.0)),
             Some(roi) => {

@@ -1,6 +1,6 @@
 //! The service's domain layer, independent of gRPC: a registry of templates (durable in a
-//! [`store`], a directory or a database shared by replicas; their encoded kernels in a bounded,
-//! coherent cache, [`kernels`]; [`registry`]) and matching through the batching model thread
+//! [`store`], a directory or a database shared by replicas; their encodings in a bounded,
+//! coherent cache, [`template_cache`]; [`registry`]) and matching through the batching model thread
 //! ([`matching`]). This file holds what they share: the engine, its start-up and its errors.
 //!
 //! The gRPC layer (`grpc/`) only converts messages and maps [`EngineError`] to status
@@ -34,7 +34,7 @@ pub struct EngineConfig {
     pub max_batch_size: usize,
     /// Most match requests waiting for the model; more are refused.
     pub queue_size: usize,
-    /// Most encoded template kernels kept in memory.
+    /// Most encoded templates kept in memory.
     pub cache_size: u64,
     /// How long a database store may be unreachable before health reports NOT_SERVING.
     pub database_grace: Duration,
@@ -108,7 +108,7 @@ pub struct Engine {
     /// shared store announces every write, this replica's included, and the count follows
     /// the announcements.
     counts_own_writes: bool,
-    kernels: Arc<TemplateCache>,
+    template_cache: Arc<TemplateCache>,
     batcher: Batcher,
     /// One classical (NCC) search at a time: each keeps the cores busy for about a second.
     classical: tokio::sync::Semaphore,
@@ -129,14 +129,14 @@ impl Engine {
         metrics: Metrics,
     ) -> Self {
         metrics.templates.set(templates as i64);
-        let kernels = Arc::new(TemplateCache::new(
+        let template_cache = Arc::new(TemplateCache::new(
             config.cache_size,
             metrics.cache_evictions.clone(),
         ));
         let events = store.take_events();
         let counts_own_writes = events.is_none();
         if let Some(mut events) = events {
-            let (kernels, templates) = (kernels.clone(), metrics.templates.clone());
+            let (template_cache, templates) = (template_cache.clone(), metrics.templates.clone());
             tokio::spawn(async move {
                 while let Some(event) = events.recv().await {
                     match event {
@@ -145,7 +145,7 @@ impl Engine {
                             content_sha256,
                             created,
                         } => {
-                            kernels.changed(&template_id, content_sha256.as_deref());
+                            template_cache.changed(&template_id, content_sha256.as_deref());
                             // Every write is announced, this replica's own included: the
                             // count follows announcements (store checks set it exactly).
                             if created {
@@ -154,7 +154,7 @@ impl Engine {
                                 templates.dec();
                             }
                         }
-                        StoreEvent::Resynchronise => kernels.clear(),
+                        StoreEvent::Resynchronise => template_cache.clear(),
                     }
                 }
             });
@@ -171,7 +171,7 @@ impl Engine {
         Self {
             store,
             counts_own_writes,
-            kernels,
+            template_cache,
             batcher,
             classical: tokio::sync::Semaphore::new(1),
             max_network_pixels: config.max_network_pixels,

@@ -1,7 +1,7 @@
 //! The template registry: templates by ID in the configured [`super::store`] (the system of
-//! record, a directory or a database), their encoded kernels in the [`super::kernels`] cache.
+//! record, a directory or a database), their encodings in the [`super::template_cache`].
 //! The store makes each write atomic and announces other replicas' changes; this layer checks
-//! what clients send, encodes kernels on the model thread and keeps the cache in step.
+//! what clients send, encodes templates on the model thread and keeps the cache in step.
 
 use std::collections::BTreeMap;
 use std::sync::Arc;
@@ -64,7 +64,7 @@ impl Engine {
             content_sha256: content.clone(),
             png,
         };
-        let ticket = self.kernels.ticket();
+        let ticket = self.template_cache.ticket();
         match self.store.put(new, replace).await? {
             PutOutcome::Unchanged(meta) => Ok(meta),
             PutOutcome::Conflict(_) => Err(EngineError::AlreadyExists(template_id)),
@@ -72,7 +72,7 @@ impl Engine {
                 if created && self.counts_own_writes {
                     self.metrics.templates.inc();
                 }
-                self.kernels
+                self.template_cache
                     .insert_written(&template_id, &content, encoded, ticket);
                 Ok(meta)
             }
@@ -145,33 +145,33 @@ impl Engine {
         }
         let removed = self.store.remove(template_id).await?;
         // Dropped even when this replica found nothing: another may have deleted it first.
-        self.kernels.changed(template_id, None);
+        self.template_cache.changed(template_id, None);
         if removed && self.counts_own_writes {
             self.metrics.templates.dec();
         }
         Ok(removed)
     }
 
-    /// The template's kernel: from the cache (no store access, so cached templates match while
+    /// The template's encoding: from the cache (no store access, so cached templates match while
     /// a database is down), or read from the store and encoded on the model thread.
-    pub(super) async fn kernel(
+    pub(super) async fn encoded_template(
         &self,
         template_id: &str,
     ) -> Result<Arc<EncodedTemplate>, EngineError> {
-        if let Some(kernel) = self.kernels.get(template_id) {
+        if let Some(encoded) = self.template_cache.get(template_id) {
             self.metrics.cache_hits.inc();
-            return Ok(kernel);
+            return Ok(encoded);
         }
         self.metrics.cache_misses.inc();
         refuse_impossible_id(template_id)?;
-        let ticket = self.kernels.ticket();
+        let ticket = self.template_cache.ticket();
         let (meta, image) = self
             .store
             .load(template_id)
             .await?
             .ok_or_else(|| EngineError::NotFound(template_id.to_owned()))?;
         let encoded = Arc::new(self.batcher.encode(image).await?);
-        self.kernels
+        self.template_cache
             .insert_read(template_id, &meta.content_sha256, encoded.clone(), ticket);
         Ok(encoded)
     }

@@ -1,4 +1,4 @@
-//! The bounded cache of encoded template kernels, kept coherent with the template store.
+//! The bounded cache of encoded templates, kept coherent with the template store.
 //!
 //! Matching a cached template needs nothing from the store (so it keeps working while a
 //! database is down); what makes that safe is that every change reaches the cache:
@@ -6,7 +6,7 @@
 //! - a change announced by the store (another replica's write) drops the entry unless it
 //!   already holds the announced content; a lost announcement channel drops everything.
 //!
-//! A kernel read from the store is slow to produce (read, decode, encode on the model thread),
+//! An encoding from the store is slow to produce (read, decode, encode on the model thread),
 //! and a change may be announced meanwhile. Every change therefore advances a counter, and a
 //! read may only insert what it read if the counter has not moved since it began ([`ReadTicket`]):
 //! a slow read can never put back what a change removed.
@@ -16,9 +16,9 @@ use std::sync::{Arc, Mutex};
 use crate::matcher::EncodedTemplate;
 
 #[derive(Clone)]
-struct CachedKernel {
+struct CachedTemplate {
     content_sha256: String,
-    kernel: Arc<EncodedTemplate>,
+    encoded: Arc<EncodedTemplate>,
 }
 
 /// When a read from the store began, in changes seen (see the module docs).
@@ -26,13 +26,13 @@ struct CachedKernel {
 pub struct ReadTicket(u64);
 
 pub struct TemplateCache {
-    cache: moka::sync::Cache<String, CachedKernel>,
+    cache: moka::sync::Cache<String, CachedTemplate>,
     /// Changes seen so far; held while the cache changes, so a check and an insert are one step.
     changes: Mutex<u64>,
 }
 
 impl TemplateCache {
-    /// At most `capacity` kernels; `evictions` counts the ones pushed out by size.
+    /// At most `capacity` templates; `evictions` counts the ones pushed out by size.
     pub fn new(capacity: u64, evictions: prometheus::IntCounter) -> Self {
         let cache = moka::sync::Cache::builder()
             .max_capacity(capacity.max(1))
@@ -49,7 +49,7 @@ impl TemplateCache {
     }
 
     pub fn get(&self, template_id: &str) -> Option<Arc<EncodedTemplate>> {
-        self.cache.get(template_id).map(|c| c.kernel)
+        self.cache.get(template_id).map(|c| c.encoded)
     }
 
     /// Taken before reading a template from the store.
@@ -57,12 +57,12 @@ impl TemplateCache {
         ReadTicket(*self.changes.lock().expect("cache lock"))
     }
 
-    /// Caches a kernel read from the store, unless a change was seen since `ticket`.
+    /// Caches an encoding of a template read from the store, unless a change was seen since `ticket`.
     pub fn insert_read(
         &self,
         template_id: &str,
         content_sha256: &str,
-        kernel: Arc<EncodedTemplate>,
+        encoded: Arc<EncodedTemplate>,
         ticket: ReadTicket,
     ) -> bool {
         let changes = self.changes.lock().expect("cache lock");
@@ -71,22 +71,22 @@ impl TemplateCache {
         }
         self.cache.insert(
             template_id.to_owned(),
-            CachedKernel {
+            CachedTemplate {
                 content_sha256: content_sha256.to_owned(),
-                kernel,
+                encoded,
             },
         );
         true
     }
 
-    /// This replica committed `kernel` as `template_id`'s new content; `ticket` was taken
+    /// This replica committed `encoded` as `template_id`'s new content; `ticket` was taken
     /// before the write. Cached unless another change was seen in between (then it is only
     /// dropped: the order of the two is unknown here, the store knows).
     pub fn insert_written(
         &self,
         template_id: &str,
         content_sha256: &str,
-        kernel: Arc<EncodedTemplate>,
+        encoded: Arc<EncodedTemplate>,
         ticket: ReadTicket,
     ) {
         let mut changes = self.changes.lock().expect("cache lock");
@@ -95,9 +95,9 @@ impl TemplateCache {
         if unchanged {
             self.cache.insert(
                 template_id.to_owned(),
-                CachedKernel {
+                CachedTemplate {
                     content_sha256: content_sha256.to_owned(),
-                    kernel,
+                    encoded,
                 },
             );
         } else {
@@ -119,7 +119,7 @@ impl TemplateCache {
         }
     }
 
-    /// Anything may have changed: drop every kernel.
+    /// Anything may have changed: drop every entry.
     pub fn clear(&self) {
         let mut changes = self.changes.lock().expect("cache lock");
         *changes += 1;
@@ -132,7 +132,7 @@ mod tests {
     use super::*;
     use crate::imaging::GrayImage32;
 
-    fn kernel(width: u32) -> Arc<EncodedTemplate> {
+    fn encoded(width: u32) -> Arc<EncodedTemplate> {
         let device = Default::default();
         Arc::new(EncodedTemplate {
             width,
@@ -152,25 +152,25 @@ mod tests {
         let ticket = cache.ticket();
         // Another replica replaces `t` while this one reads and encodes the old content.
         cache.changed("t", Some("new"));
-        assert!(!cache.insert_read("t", "old", kernel(8), ticket));
+        assert!(!cache.insert_read("t", "old", encoded(8), ticket));
         assert!(cache.get("t").is_none());
         let ticket = cache.ticket();
-        assert!(cache.insert_read("t", "new", kernel(9), ticket));
+        assert!(cache.insert_read("t", "new", encoded(9), ticket));
         assert_eq!(cache.get("t").unwrap().width, 9);
     }
 
     #[test]
     fn announcements_drop_stale_entries_and_keep_current_ones() {
         let cache = cache();
-        cache.insert_written("t", "a", kernel(8), cache.ticket());
+        cache.insert_written("t", "a", encoded(8), cache.ticket());
         cache.changed("t", Some("a")); // our own write, announced back
         assert!(cache.get("t").is_some());
         cache.changed("t", Some("b"));
         assert!(cache.get("t").is_none());
-        cache.insert_written("t", "b", kernel(8), cache.ticket());
+        cache.insert_written("t", "b", encoded(8), cache.ticket());
         cache.changed("t", None);
         assert!(cache.get("t").is_none());
-        cache.insert_written("u", "u", kernel(8), cache.ticket());
+        cache.insert_written("u", "u", encoded(8), cache.ticket());
         cache.clear();
         assert!(cache.get("u").is_none());
     }
@@ -178,10 +178,10 @@ mod tests {
     #[test]
     fn a_local_write_overtaken_by_an_announcement_is_dropped() {
         let cache = cache();
-        cache.insert_written("t", "a", kernel(8), cache.ticket());
+        cache.insert_written("t", "a", encoded(8), cache.ticket());
         let ticket = cache.ticket();
         cache.changed("t", Some("c")); // committed elsewhere, after or before ours: unknown
-        cache.insert_written("t", "b", kernel(9), ticket);
+        cache.insert_written("t", "b", encoded(9), ticket);
         assert!(cache.get("t").is_none());
     }
 }

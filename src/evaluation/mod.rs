@@ -2,6 +2,8 @@
 //! (mean |Δsx|, |Δsy|), Rot.Err (°, wrapped), mIoU of rotated boxes, Succ (IoU ≥ 0.5), time per
 //! pair; and precision/recall at IoU ≥ 0.5 with greedy matching for multi-instance images.
 
+mod calibration;
+
 use std::time::Instant;
 
 use serde::Serialize;
@@ -13,6 +15,7 @@ use crate::matcher::{MatchError, MatchJob, MatchOptions, Matcher, Proposal, Vali
 use crate::matcher::{answer, with_classical_fallback};
 use crate::refine::refine_pose;
 use crate::synth::SyntheticPair;
+pub use calibration::{Calibration, path_changes};
 
 /// IoU at which a prediction counts as the object (the paper's Succ).
 pub const SUCCESS_IOU: f32 = 0.5;

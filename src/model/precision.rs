@@ -109,7 +109,7 @@ impl Precision {
     /// `f32`, `bf16 (AMX tiles)`, `bf16 (AVX-512 BF16)` (`auto` as it is, unresolved).
     pub fn arithmetic(self) -> String {
         match (self, bf16::instructions()) {
-            (Self::Bf16, Some(kernel)) => format!("bf16 ({kernel})"),
+            (Self::Bf16, Some(instructions)) => format!("bf16 ({instructions})"),
             (other, _) => other.to_string(),
         }
     }

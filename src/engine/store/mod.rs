@@ -1,7 +1,7 @@
 //! The system of record for registered templates. Two stores answer the same operations:
 //! - [`directory`]: files in a local directory, owned by one replica (the default);
 //! - [`postgres`]: a PostgreSQL table shared by any number of replicas, which hear of each
-//!   other's changes through `LISTEN`/`NOTIFY` ([`StoreEvent`]) to keep their kernel caches
+//!   other's changes through `LISTEN`/`NOTIFY` ([`StoreEvent`]) to keep their template caches
 //!   coherent.
 //!
 //! Both promise what the registry relies on: a write is acknowledged only once it is committed;

@@ -5,7 +5,7 @@
 //! once are serialised), the check against the existing row, the insert or update, and a
 //! `NOTIFY` on [`CHANNEL`] that PostgreSQL delivers to every listener when (and only if) the
 //! transaction commits. Each replica keeps one extra connection that `LISTEN`s and turns the
-//! notifications into [`StoreEvent`]s for its kernel cache; when that connection is lost it
+//! notifications into [`StoreEvent`]s for its template cache; when that connection is lost it
 //! reconnects with backoff, listens again and announces [`StoreEvent::Resynchronise`], because
 //! anything may have changed meanwhile. Requests use a small pool of other connections.
 //!

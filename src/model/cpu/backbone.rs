@@ -27,7 +27,7 @@ use crate::model::Precision;
 use crate::model::network::{Backbone, ConvNextBlock, GRN_EPS, LAYER_NORM_EPS};
 
 /// Pixels per parallel chunk: the chunk's fc1 output (256 x 384 f32, 384 KiB) stays in L2.
-/// A multiple of the tile kernel's 32-row blocks.
+/// A multiple of the tile routine's 32-row blocks.
 const CHUNK_PIXELS: usize = 256;
 /// Side of the depthwise convolution in each block.
 const BLOCK_KERNEL: usize = 7;
@@ -167,7 +167,7 @@ fn channels_last_taps(weights: &[f32], channels: usize, k: usize) -> Vec<f32> {
 struct Scratch {
     /// A chunk after depthwise + LayerNorm, `[CHUNK_PIXELS, channels]`.
     normed: Vec<f32>,
-    /// The same rounded to bf16 in the tile kernel's row layout (bf16 only).
+    /// The same rounded to bf16 in the tile routine's row layout (bf16 only).
     lhs: Vec<u16>,
     /// fc1's f32 output before it is rounded into the hidden activation (bf16 only).
     activation: Vec<f32>,
@@ -176,7 +176,7 @@ struct Scratch {
 /// The 384-channel activation between fc1 and fc2 of one block, in the products' element type.
 enum Hidden {
     F32(Vec<f32>),
-    /// Rows padded to whole 32-row blocks for the tile kernel.
+    /// Rows padded to whole 32-row blocks for the tile routine.
     Bf16(Vec<u16>),
 }
 
@@ -392,7 +392,7 @@ impl CpuBackbone {
                 .collect();
             (Hidden::F32(hidden), partials)
         } else {
-            // Rows padded to whole tile blocks (the kernel discards their products).
+            // Rows padded to whole tile blocks (the tile routine discards their products).
             let mut hidden = pool.take::<u16>(bf16::padded_rows(pixels) * hidden_c);
             let partials = hidden
                 .par_chunks_mut(CHUNK_PIXELS * hidden_c)

@@ -23,7 +23,7 @@ const TILE_ROWS: usize = 16;
 const TILE_COLUMNS: usize = 16;
 /// bf16 values of k per tile step (one 64-byte tile row).
 const TILE_K: usize = 32;
-/// Rows of the left-hand side per kernel pass (two accumulator tiles high).
+/// Rows of the left-hand side per tile pass (two accumulator tiles high).
 const BLOCK_ROWS: usize = 2 * TILE_ROWS;
 
 /// The instructions that run this process's bf16 products.
@@ -47,8 +47,8 @@ impl fmt::Display for Bf16Instructions {
 /// The fastest bf16 instructions this process may use, `None` where the CPU has neither. Asked once
 /// per process.
 pub fn instructions() -> Option<Bf16Instructions> {
-    static KERNEL: OnceLock<Option<Bf16Instructions>> = OnceLock::new();
-    *KERNEL.get_or_init(|| {
+    static INSTRUCTIONS: OnceLock<Option<Bf16Instructions>> = OnceLock::new();
+    *INSTRUCTIONS.get_or_init(|| {
         if tiles_available() {
             Some(Bf16Instructions::AmxTiles)
         } else if dot_available() {
@@ -77,7 +77,7 @@ fn dot_available() -> bool {
     }
 }
 
-/// Whether this process may use AMX bf16 tiles: the CPU has them (CPUID) and the kernel granted
+/// Whether this process may use AMX bf16 tiles: the CPU has them (CPUID) and Linux granted
 /// the tile data state (`arch_prctl(ARCH_REQ_XCOMP_PERM)`, Linux 5.16+). Asked once per process.
 fn tiles_available() -> bool {
     static AVAILABLE: OnceLock<bool> = OnceLock::new();
@@ -95,7 +95,7 @@ fn request_tiles() -> bool {
     }
     const ARCH_REQ_XCOMP_PERM: libc::c_long = 0x1023;
     const XFEATURE_XTILEDATA: libc::c_long = 18;
-    // SAFETY: a system call with integer arguments; the kernel answers 0 when it grants this
+    // SAFETY: a system call with integer arguments; Linux answers 0 when it grants this
     // process the tile data state, an error otherwise.
     let granted = unsafe {
         libc::syscall(
@@ -166,7 +166,7 @@ unsafe fn round_into_avx512(values: &[f32], out: &mut [u16]) -> usize {
     whole
 }
 
-/// Rows a left-hand side of `m` rows must hold: the kernel reads whole 32-row blocks (rows past
+/// Rows a left-hand side of `m` rows must hold: the tile routine reads whole 32-row blocks (rows past
 /// `m` are read and their results discarded).
 pub fn padded_rows(m: usize) -> usize {
     m.div_ceil(BLOCK_ROWS) * BLOCK_ROWS
@@ -284,7 +284,7 @@ unsafe fn multiply_tiles(lhs: &[u16], m: usize, weights: &Bf16Weights, out: &mut
     // padded_rows(m), columns below its stride), inside one packed 1 KiB weight tile, or one
     // 64-byte bias row (stride 0); stores write whole tiles inside `out` (when all 32 rows and
     // 16 columns exist) or the scratch tiles. Tile registers are volatile and nothing else in
-    // this process uses them while this thread runs the kernel.
+    // this process uses them while this thread runs the tile routine.
     unsafe {
         asm!("ldtilecfg [{}]", in(reg) config.0.as_ptr(), options(nostack, readonly));
         for row_block in (0..m).step_by(BLOCK_ROWS) {
@@ -378,7 +378,7 @@ unsafe fn multiply_tiles(lhs: &[u16], m: usize, weights: &Bf16Weights, out: &mut
     }
 }
 
-/// Rows of the left-hand side per pass of the AVX-512 BF16 kernel.
+/// Rows of the left-hand side per pass of the AVX-512 BF16 routine.
 const DOT_ROWS: usize = 8;
 
 /// `multiply` with AVX-512 BF16 dot products (`vdpbf16ps`: per f32 lane, a pair of bf16
@@ -497,12 +497,12 @@ mod tests {
         assert!(from_bf16(to_bf16(f32::NAN)).is_nan());
     }
 
-    type Kernel = unsafe fn(&[u16], usize, &Bf16Weights, &mut [f32]);
+    type Product = unsafe fn(&[u16], usize, &Bf16Weights, &mut [f32]);
 
-    /// `kernel` equals an f64 product of the bf16-rounded operands, for shapes with every kind
+    /// `product` equals an f64 product of the bf16-rounded operands, for shapes with every kind
     /// of edge: rows not a multiple of 8 or 32, k not a multiple of 32, n of 12 / 20 / 48 / 80 /
     /// 96 (one, an odd number of, and groups of column blocks, partial last blocks).
-    fn assert_equals_the_rounded_operands_product(kernel: Kernel) {
+    fn assert_equals_the_rounded_operands_product(product: Product) {
         let mut state = 0x2545_f491_4f6c_dd1du64;
         let mut random = move || {
             state ^= state << 13;
@@ -529,7 +529,7 @@ mod tests {
             }
             // SAFETY: the callers checked the CPU; the operands have the sizes `multiply`
             // asserts.
-            unsafe { kernel(&lhs, m, &weights, &mut out) };
+            unsafe { product(&lhs, m, &weights, &mut out) };
             let rounded = |v: f32| from_bf16(to_bf16(v)) as f64;
             for i in 0..m {
                 for j in 0..n {
@@ -571,7 +571,7 @@ mod tests {
         }
     }
 
-    /// Where neither kernel can run, nothing claims one (and precision selection refuses bf16
+    /// Where neither set of instructions can run, nothing claims one (and precision selection refuses bf16
     /// there, tested in `precision`).
     #[test]
     fn the_kernel_is_one_this_cpu_has() {

@@ -34,8 +34,8 @@ pub fn matmul_bias(
     );
     if m == 1 {
         // gemm multiplies a single row as a matrix-vector product, which rounds differently
-        // from its kernel for two or more rows; a pixel must get the same bits whether its
-        // chunk holds one pixel or many, so one row goes through the kernel as two.
+        // from its block product for two or more rows; a pixel must get the same bits whether its
+        // chunk holds one pixel or many, so one row goes through the block product as two.
         let mut pair = Vec::with_capacity(2 * k);
         pair.extend_from_slice(&lhs[..k]);
         pair.extend_from_slice(&lhs[..k]);
@@ -76,7 +76,7 @@ pub fn matmul_bias(
 
 /// Large activation buffers kept from one forward pass to the next, so that the tiles of a
 /// frame do not each fault in and zero a few hundred megabytes of fresh memory (a fifth of a
-/// bf16 forward went to `memset` and the kernel's page clearing). A taken buffer's contents
+/// bf16 forward went to `memset` and the OS's page clearing). A taken buffer's contents
 /// are unspecified: whoever takes one overwrites all of it.
 #[derive(Default)]
 pub(crate) struct BufferPool {
@@ -329,7 +329,7 @@ fn lanes_at(values: &[f32], at: usize) -> &[f32; LANES] {
 /// One kernel row of `K` taps over a run: `acc[p] += Σ_kx row[p + kx] · taps_row[kx]`, each
 /// sum in ascending `kx`, with `row` and `taps_row` `channels` apart per pixel / tap. Each
 /// input vector is loaded once for the (up to `K`) pixels whose window covers it; `avx512`
-/// ([`has_avx512f`]) picks the register kernel.
+/// ([`has_avx512f`]) picks the register routine.
 #[inline(always)]
 fn slide<const K: usize>(
     acc: &mut [[f32; LANES]; RUN],
