@@ -272,16 +272,7 @@ impl InferenceNetwork {
             return self.model.search_matcher.forward(images, kernels);
         };
         let device = images.device();
-        let [batch, _, height, width] = images.dims();
-        let kernel_side = kernels.dims()[2];
-        let batch = SearchBatch {
-            images: &host_values(images),
-            batch,
-            height,
-            width,
-            kernels: &host_values(kernels),
-            kernel_side,
-        };
+        let batch = SearchBatch::from_tensors(images, kernels);
         let maps = host.search(&batch, PoseHeads::Everywhere, false).0;
         let [h, w] = batch.map_size();
         MatchMaps {
@@ -321,15 +312,7 @@ impl InferenceNetwork {
                 .try_into_vec()
                 .expect("network output is f32; this is a bug");
         };
-        let kernel_side = kernels.dims()[2];
-        let batch = SearchBatch {
-            images: &images,
-            batch,
-            height,
-            width,
-            kernels: &host_values(kernels),
-            kernel_side,
-        };
+        let batch = SearchBatch::new(images, [batch, height, width], kernels);
         host.search(&batch, pose, false).0
     }
 
@@ -343,19 +326,10 @@ impl InferenceNetwork {
             return self.model.search_matcher.forward_traced(images, kernels);
         };
         let device = images.device();
-        let [batch, _, height, width] = images.dims();
-        let kernel_side = kernels.dims()[2];
-        let batch = SearchBatch {
-            images: &host_values(images),
-            batch,
-            height,
-            width,
-            kernels: &host_values(kernels),
-            kernel_side,
-        };
+        let batch = SearchBatch::from_tensors(images, kernels);
         let (maps, traces) = host.search(&batch, PoseHeads::Everywhere, true);
         let [map_h, map_w] = batch.map_size();
-        let (h, w) = (height / 4, width / 4);
+        let (h, w) = (batch.height / 4, batch.width / 4);
         let tensor = |part: fn(&CpuSampleTrace) -> &[f32], h: usize, w: usize, c: usize| {
             let parts: Vec<&[f32]> = traces.iter().map(part).collect();
             nchw_tensor(&parts, h, w, c, &device)
@@ -382,17 +356,37 @@ impl InferenceNetwork {
 
 /// A batch of search samples in host memory: planar images `[batch, 3, height, width]` and
 /// their kernels `[batch, channels, k, k]`.
-struct SearchBatch<'a> {
-    images: &'a [f32],
+struct SearchBatch {
+    images: Vec<f32>,
     batch: usize,
     height: usize,
     width: usize,
-    kernels: &'a [f32],
+    kernels: Vec<f32>,
     /// Side of each depthwise kernel.
     kernel_side: usize,
 }
 
-impl SearchBatch<'_> {
+impl SearchBatch {
+    /// Planar images `[batch, 3, height, width]` as given, and the kernels `[batch, channels,
+    /// k, k]` read into host memory.
+    fn new(images: Vec<f32>, [batch, height, width]: [usize; 3], kernels: Tensor<4>) -> Self {
+        let kernel_side = kernels.dims()[2];
+        Self {
+            images,
+            batch,
+            height,
+            width,
+            kernels: host_values(kernels),
+            kernel_side,
+        }
+    }
+
+    /// Both operands read out of their tensors.
+    fn from_tensors(images: Tensor<4>, kernels: Tensor<4>) -> Self {
+        let [batch, _, height, width] = images.dims();
+        Self::new(host_values(images), [batch, height, width], kernels)
+    }
+
     /// Sides of the maps: `4⌊side/4⌋`.
     fn map_size(&self) -> [usize; 2] {
         [self.height / 4 * 4, self.width / 4 * 4]
