@@ -62,6 +62,7 @@ fn main() {
             template: &encoded,
             image: &pair.search,
             options: &wide_options,
+            answer_by: None,
         };
         let proposal = matcher
             .propose(std::slice::from_ref(&job))

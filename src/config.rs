@@ -14,7 +14,7 @@ use serde::{Deserialize, Serialize};
 
 use crate::engine::store::StoreLocation;
 use crate::imaging::InputConvention;
-use crate::matcher::MatchOptions;
+use crate::matcher::{MatchOptions, Polarity};
 use crate::model::{Precision, WeightsSource};
 
 /// Log line format.
@@ -82,6 +82,14 @@ pub struct FileSettings {
     /// the network's candidates verifies (small searches only; a request's
     /// `no_classical_fallback` switches it off for that request).
     pub classical_fallback: bool,
+    /// Which contrast parts may show when a request leaves `polarity` unspecified: `same`,
+    /// `reversed` or `either`.
+    #[serde(default)]
+    pub polarity: Polarity,
+    /// Milliseconds within which a match answers with what it has when a request leaves
+    /// `timeout_ms` unset (1..=600000); unset: no limit.
+    #[serde(default)]
+    pub timeout_ms: Option<u32>,
     /// PEM certificate chain and private key: with both, the service speaks TLS only.
     pub tls_cert: PathBuf,
     pub tls_key: PathBuf,
@@ -251,6 +259,8 @@ impl FileSettings {
             candidate_threshold: self.candidate_threshold,
             max_candidates: self.max_candidates,
             classical_fallback: self.classical_fallback,
+            polarity: self.polarity,
+            timeout_ms: self.timeout_ms,
             ..MatchOptions::default()
         };
         if let Err(e) = match_defaults.clone().validate() {

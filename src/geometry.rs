@@ -34,6 +34,26 @@ impl Pose {
         )
     }
 
+    /// The 2x3 affine map `[a, b, c, d, e, f]` from template pixel coordinates (column, row;
+    /// the centre of the top-left template pixel is (0, 0)) of a `template_width x
+    /// template_height` template to image coordinates under this pose: `x' = a·col + b·row + c`,
+    /// `y' = d·col + e·row + f` (OpenCV's `warpAffine` matrix, row-major). Exactly
+    /// [`Pose::map_point`] with `(u, v)` the offset from the template centre.
+    pub fn transform(&self, template_width: f32, template_height: f32) -> [f32; 6] {
+        let (s, c) = self.angle_deg.to_radians().sin_cos();
+        let (a, b) = (self.scale_x * c, self.scale_y * s);
+        let (d, e) = (-self.scale_x * s, self.scale_y * c);
+        let (cx, cy) = ((template_width - 1.0) / 2.0, (template_height - 1.0) / 2.0);
+        [
+            a,
+            b,
+            self.x - a * cx - b * cy,
+            d,
+            e,
+            self.y - d * cx - e * cy,
+        ]
+    }
+
     /// The four image corners of a `template_width x template_height` template placed at this
     /// pose: top-left, top-right, bottom-right, bottom-left (in template orientation).
     pub fn corners(&self, template_width: f32, template_height: f32) -> [(f32, f32); 4] {
@@ -130,6 +150,19 @@ pub fn rotated_iou(a: &[(f32, f32); 4], b: &[(f32, f32); 4]) -> f32 {
 #[cfg(test)]
 mod tests {
     use super::*;
+
+    #[test]
+    fn the_transform_maps_template_pixels_as_the_pose_convention_does() {
+        let p = pose(40.5, -3.25, 33.0, 1.3, 0.7);
+        let (tw, th) = (36.0, 20.0);
+        let [a, b, c, d, e, f] = p.transform(tw, th);
+        for (col, row) in [(0.0, 0.0), (35.0, 19.0), (17.5, 9.5), (3.0, 14.0)] {
+            let (u, v) = (col - (tw - 1.0) / 2.0, row - (th - 1.0) / 2.0);
+            let (x, y) = p.map_point(u, v);
+            assert!((a * col + b * row + c - x).abs() < 1e-4);
+            assert!((d * col + e * row + f - y).abs() < 1e-4);
+        }
+    }
 
     fn pose(x: f32, y: f32, angle_deg: f32, scale_x: f32, scale_y: f32) -> Pose {
         Pose {

@@ -48,6 +48,7 @@ fn current_output() -> Value {
                 template: &encoded,
                 image: &pair.search,
                 options: &options,
+                answer_by: None,
             };
             let proposal = matcher.propose(&[job]).pop().unwrap().unwrap();
             let top: Vec<Value> = proposal

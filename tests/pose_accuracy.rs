@@ -132,6 +132,7 @@ fn three_paths(matcher: &Matcher, pairs: u64) -> [usize; 3] {
         let run = match_pair(
             matcher,
             &pair,
+            None,
             &options,
             ANY_PEAK,
             Paths {

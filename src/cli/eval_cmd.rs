@@ -18,7 +18,8 @@ use crate::evaluation::{
 };
 use crate::geometry::Pose;
 use crate::imaging::GrayImage32;
-use crate::matcher::{MatchOptions, Method};
+use crate::matcher::{MatchOptions, Method, TemplateMask};
+use crate::synth::conditions::{self, Condition};
 use crate::synth::{Level, PairSpec, PhotoSet, SyntheticPair, make_multi_instance, make_pair};
 
 #[derive(Args, Debug)]
@@ -49,6 +50,14 @@ pub struct EvalArgs {
     /// The verified path's options, as `posematch match`'s.
     #[command(flatten)]
     pub verification: super::VerificationArgs,
+    /// What the line does to the part: `clean`, `reversed` (search image 255 − pixel) or
+    /// `occluded-quarter` (a quadrant of every instance covered by texture from elsewhere).
+    #[arg(long, default_value = "clean", value_parser = str::parse::<Condition>)]
+    pub condition: Condition,
+    /// With `--condition occluded-quarter`: register each template with the covered quadrant
+    /// masked out (what `--template-mask` does), as an engineer who knows where a clamp sits.
+    #[arg(long)]
+    pub mask_covered: bool,
     /// Multi-instance images (320x320, 2–8 instances) with precision/recall instead of pairs.
     #[arg(long)]
     pub multi_instance: bool,
@@ -140,6 +149,7 @@ pub fn run(args: EvalArgs) -> Result<(), CliError> {
         max_candidates: args.verification.max_candidates,
         method: args.method,
         classical_fallback: !args.verification.no_classical_fallback,
+        polarity: args.verification.polarity,
         ..MatchOptions::default()
     }
     .validate()
@@ -169,6 +179,12 @@ pub fn run(args: EvalArgs) -> Result<(), CliError> {
             make_pair(&photos, &spec, args.seed, index)
         }
         .map_err(|e| CliError::Input(e.to_string()))?;
+        let (pair, covered) = conditions::apply(pair, args.condition, args.seed, index);
+        let mask = covered.filter(|_| args.mask_covered).map(|quadrant| {
+            let (w, h) = (pair.template.width, pair.template.height);
+            TemplateMask::new(w, h, quadrant.mask_out(w, h))
+                .expect("three quadrants of a template are enough pixels")
+        });
         if let Some(saver) = saver.as_mut() {
             saver.save(index, &pair)?;
         }
@@ -178,6 +194,7 @@ pub fn run(args: EvalArgs) -> Result<(), CliError> {
                 let run = match_pair(
                     matcher,
                     &pair,
+                    mask.as_ref(),
                     &options,
                     network_min_score,
                     Paths {
@@ -202,6 +219,7 @@ pub fn run(args: EvalArgs) -> Result<(), CliError> {
             }
             None => vec![run_ncc(
                 &pair,
+                mask.as_ref(),
                 &options,
                 args.level,
                 !args.no_refine,
@@ -222,7 +240,9 @@ pub fn run(args: EvalArgs) -> Result<(), CliError> {
         }
     }
     let label = format!(
-        "{} {}x{} n={} seed={} min-structure={}",
+        "{} polarity={} {} {}x{} n={} seed={} min-structure={}",
+        args.condition.name(),
+        options.polarity.name(),
         args.level.name(),
         tw,
         th,
@@ -315,6 +335,7 @@ const NETWORK_MIN_SCORE: f32 = 0.5;
 /// The classical baseline on one pair (refined inside): its poses and time.
 fn run_ncc(
     pair: &SyntheticPair,
+    mask: Option<&TemplateMask>,
     options: &MatchOptions,
     level: Level,
     refine: bool,
@@ -333,8 +354,13 @@ fn run_ncc(
         scale_range: (hi > lo).then_some(crate::matcher::ScaleRange { min: lo, max: hi }),
         ..options.clone()
     };
+    let template = GrayImage32::from_rgb(&pair.template);
+    let template = match mask {
+        Some(mask) => mask.applied_to(&template),
+        None => template,
+    };
     let poses = crate::matcher::classical::ncc_match(
-        &GrayImage32::from_rgb(&pair.template),
+        &template,
         &GrayImage32::from_rgb(&pair.search),
         &ncc_options,
     );

@@ -9,25 +9,32 @@ use std::time::Instant;
 use clap::Args;
 use serde_json::{Value, json};
 
-use super::{CliError, ModelArgs, load_model, read_image};
+use super::{CliError, ModelArgs, load_model, read_image, read_template};
 use crate::imaging::{GrayImage32, RgbImage32};
 use crate::matcher::{
-    AngleRange, EncodedTemplate, MatchOptions, Matcher, Method, ScaleRange, ValidOptions,
+    AngleRange, EncodedTemplate, MatchOptions, Matcher, Method, ScaleRange, TemplateMask,
+    ValidOptions,
 };
 
 #[derive(Args, Debug)]
 pub struct MatchArgs {
-    /// Template image (PNG, JPEG, BMP, TIFF, PNM).
+    /// Template image (PNG, JPEG, BMP, TIFF, PNM). Transparent pixels of a template with an
+    /// alpha channel are ignored, as with --template-mask.
     #[arg(long, required_unless_present = "pairs", conflicts_with = "pairs")]
     pub template: Option<PathBuf>,
+    /// Mask of the template's size: black (0) pixels are ignored by every score and the
+    /// refinement (a date code, a serial number), any other value is used.
+    #[arg(long, requires = "template")]
+    pub template_mask: Option<PathBuf>,
     /// Search image.
     #[arg(long, required_unless_present = "pairs", conflicts_with = "pairs")]
     pub image: Option<PathBuf>,
-    /// Batch mode: JSONL with one `{"id", "template", "image"[, "max_instances"]}` per line;
-    /// relative paths are relative to this file's folder.
+    /// Batch mode: JSONL with one `{"id", "template", "image"[, "template_mask",
+    /// "max_instances"]}` per line; relative paths are relative to this file's folder.
     #[arg(long, requires = "out")]
     pub pairs: Option<PathBuf>,
-    /// Batch mode output: one `{"id", "poses", "ms"}` (or `{"id", "error"}`) per input line;
+    /// Batch mode output: one `{"id", "poses", "timed_out", "ms"}` (or `{"id", "error"}`) per
+    /// input line;
     /// `ms` is the matching alone (files read and decoded before; a new template is encoded
     /// before).
     #[arg(long, requires = "pairs")]
@@ -56,6 +63,11 @@ pub struct MatchArgs {
     /// slow), for single pairs and `--pairs` alike.
     #[arg(long, default_value = "tdcm", value_parser = str::parse::<Method>)]
     pub method: Method,
+    /// Answer within this many milliseconds (from the start of matching, after the files are
+    /// read) with what was verified by then, and `"timed_out": true`, instead of finishing the
+    /// search (network method only).
+    #[arg(long)]
+    pub timeout_ms: Option<u32>,
     /// Draw the poses on the search image and save it here (PNG).
     #[arg(long, conflicts_with = "pairs")]
     pub overlay: Option<PathBuf>,
@@ -95,6 +107,8 @@ impl MatchArgs {
             verify: !self.no_refine,
             method: self.method,
             classical_fallback: !self.verification.no_classical_fallback,
+            polarity: self.verification.polarity,
+            timeout_ms: self.timeout_ms,
         }
         .validate()
         .map_err(|e| CliError::Usage(e.as_flag()))
@@ -116,28 +130,34 @@ pub fn run(args: MatchArgs) -> Result<(), CliError> {
             "give --template and --image, or --pairs and --out".into(),
         ));
     };
-    let template = read_image(template_path)?;
+    let (template, mask) = read_template(template_path, args.template_mask.as_deref())?;
     let image = read_image(image_path)?;
-    let (poses, ms) = if args.method == Method::Ncc {
+    let (poses, timed_out, ms) = if args.method == Method::Ncc {
         let start = Instant::now();
-        let poses = ncc_answer(&template, &image, &options)?;
-        (poses, start.elapsed().as_secs_f64() * 1e3)
+        let poses = ncc_answer(&template, mask.as_ref(), &image, &options)?;
+        (poses, false, start.elapsed().as_secs_f64() * 1e3)
     } else {
         let matcher = load_model(&args.model)?;
         let start = Instant::now();
-        let encoded = matcher.encode_template(&template)?;
-        let poses = matcher.match_one(&encoded, &image, &options)?.poses;
-        (poses, start.elapsed().as_secs_f64() * 1e3)
+        let encoded = matcher.encode_masked_template(&template, mask.as_ref())?;
+        let outcome = matcher.match_one(&encoded, &image, &options)?;
+        (
+            outcome.poses,
+            outcome.timed_out,
+            start.elapsed().as_secs_f64() * 1e3,
+        )
     };
     if let Some(overlay) = &args.overlay {
         super::overlay::save_overlay(&image, &poses, template.width, template.height, overlay)?;
     }
+    let poses = poses_json(&poses, template.width, template.height);
     let answer = json!({
         "template": template_path,
         "image": image_path,
         "image_width": image.width,
         "image_height": image.height,
         "poses": poses,
+        "timed_out": timed_out,
         "ms": round3(ms),
     });
     println!(
@@ -151,10 +171,19 @@ pub fn run(args: MatchArgs) -> Result<(), CliError> {
 /// them, and its cost bounded.
 fn ncc_answer(
     template: &RgbImage32,
+    mask: Option<&TemplateMask>,
     image: &RgbImage32,
     options: &MatchOptions,
 ) -> Result<Vec<crate::geometry::Pose>, crate::matcher::MatchError> {
     crate::matcher::check_pair_sizes(template.width, template.height, image.width, image.height)?;
+    let gray = GrayImage32::from_rgb(template);
+    let gray = match mask {
+        Some(mask) => {
+            mask.check_fits(template.width, template.height)?;
+            mask.applied_to(&gray)
+        }
+        None => gray,
+    };
     crate::matcher::classical::check_work(
         template.width,
         template.height,
@@ -163,10 +192,23 @@ fn ncc_answer(
         options,
     )?;
     Ok(crate::matcher::classical::ncc_match(
-        &GrayImage32::from_rgb(template),
+        &gray,
         &GrayImage32::from_rgb(image),
         options,
     ))
+}
+
+/// Poses as the CLI prints them: the pose's fields and its `transform`, the 2x3 matrix from
+/// template pixels to image pixels ([`crate::geometry::Pose::transform`]).
+fn poses_json(poses: &[crate::geometry::Pose], width: u32, height: u32) -> Vec<Value> {
+    poses
+        .iter()
+        .map(|pose| {
+            let mut value = serde_json::to_value(pose).expect("a pose is plain numbers");
+            value["transform"] = json!(pose.transform(width as f32, height as f32));
+            value
+        })
+        .collect()
 }
 
 fn ms_since(start: Instant) -> f64 {
@@ -189,7 +231,8 @@ fn run_pairs(
     let base = pairs.parent().unwrap_or(Path::new(".")).to_owned();
     let output = File::create(out).map_err(|e| CliError::io(out, e))?;
     let mut output = BufWriter::new(output);
-    let mut templates: HashMap<PathBuf, EncodedTemplate> = HashMap::new();
+    // Encoded once per (template, mask) pair.
+    let mut templates: HashMap<(PathBuf, Option<PathBuf>), EncodedTemplate> = HashMap::new();
     let (mut ok, mut failed) = (0usize, 0usize);
     for (number, line) in BufReader::new(input).lines().enumerate() {
         let line = line.map_err(|e| CliError::io(pairs, e))?;
@@ -198,9 +241,9 @@ fn run_pairs(
         }
         let (id, result) = match_line(matcher, &line, &base, options, &mut templates);
         let record = match result {
-            Ok((poses, ms)) => {
+            Ok((poses, timed_out, ms)) => {
                 ok += 1;
-                json!({"id": id, "poses": poses, "ms": round3(ms)})
+                json!({"id": id, "poses": poses, "timed_out": timed_out, "ms": round3(ms)})
             }
             Err(message) => {
                 failed += 1;
@@ -222,8 +265,8 @@ fn match_line(
     line: &str,
     base: &Path,
     options: &ValidOptions,
-    templates: &mut HashMap<PathBuf, EncodedTemplate>,
-) -> (Value, Result<(Vec<crate::geometry::Pose>, f64), String>) {
+    templates: &mut HashMap<(PathBuf, Option<PathBuf>), EncodedTemplate>,
+) -> (Value, Result<(Vec<Value>, bool, f64), String>) {
     let record: Value = match serde_json::from_str(line) {
         Ok(v) => v,
         Err(e) => return (Value::Null, Err(format!("not valid JSON: {e}"))),
@@ -239,6 +282,10 @@ fn match_line(
     let result = (|| {
         let template_path = path("template")?;
         let image_path = path("image")?;
+        let mask_path = match record.get("template_mask") {
+            None | Some(Value::Null) => None,
+            Some(_) => Some(path("template_mask")?),
+        };
         let options = match record.get("max_instances") {
             None => options.clone(),
             Some(n) => MatchOptions {
@@ -252,25 +299,37 @@ fn match_line(
             .map_err(|e| e.to_string())?,
         };
         let Some(matcher) = matcher else {
-            let template = read_image(&template_path).map_err(|e| e.to_string())?;
+            let (template, mask) =
+                read_template(&template_path, mask_path.as_deref()).map_err(|e| e.to_string())?;
             let image = read_image(&image_path).map_err(|e| e.to_string())?;
             let start = Instant::now();
-            let poses = ncc_answer(&template, &image, &options).map_err(|e| e.to_string())?;
-            return Ok((poses, ms_since(start)));
+            let poses = ncc_answer(&template, mask.as_ref(), &image, &options)
+                .map_err(|e| e.to_string())?;
+            let ms = ms_since(start);
+            return Ok((
+                poses_json(&poses, template.width, template.height),
+                false,
+                ms,
+            ));
         };
-        if !templates.contains_key(&template_path) {
-            let template = read_image(&template_path).map_err(|e| e.to_string())?;
+        let key = (template_path.clone(), mask_path.clone());
+        if !templates.contains_key(&key) {
+            let (template, mask) =
+                read_template(&template_path, mask_path.as_deref()).map_err(|e| e.to_string())?;
             let encoded = matcher
-                .encode_template(&template)
+                .encode_masked_template(&template, mask.as_ref())
                 .map_err(|e| format!("{}: {e}", template_path.display()))?;
-            templates.insert(template_path.clone(), encoded);
+            templates.insert(key.clone(), encoded);
         }
         let image = read_image(&image_path).map_err(|e| e.to_string())?;
         let start = Instant::now();
         let outcome = matcher
-            .match_one(&templates[&template_path], &image, &options)
+            .match_one(&templates[&key], &image, &options)
             .map_err(|e| e.to_string())?;
-        Ok((outcome.poses, ms_since(start)))
+        let ms = ms_since(start);
+        let encoded = &templates[&key];
+        let poses = poses_json(&outcome.poses, encoded.width, encoded.height);
+        Ok((poses, outcome.timed_out, ms))
     })();
     (id, result)
 }

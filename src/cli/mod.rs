@@ -14,7 +14,7 @@ use std::path::{Path, PathBuf};
 use clap::{Args, Parser, Subcommand};
 
 use crate::imaging::{DecodeError, ImageLimits, InputConvention, decode_image_file};
-use crate::matcher::{MatchError, Matcher};
+use crate::matcher::{MatchError, Matcher, Polarity, TemplateMask};
 use crate::model::{
     DeviceError, LoadError, Precision, WeightsSource, load_weights, save_weights, select_device,
 };
@@ -93,6 +93,11 @@ pub struct VerificationArgs {
     /// costs less than about 65 ms (e.g. up to about 650x650 pixels for a 36x36 template).
     #[arg(long)]
     pub no_classical_fallback: bool,
+    /// Which contrast the part may show: `same` (as registered), `reversed` (dark where the
+    /// template is bright: a backlight, another coating) or `either` (both searched, about
+    /// twice the work).
+    #[arg(long, default_value = "same", value_parser = str::parse::<Polarity>)]
+    pub polarity: Polarity,
 }
 
 /// Model flags shared by every subcommand that runs the network.
@@ -211,4 +216,31 @@ pub fn run(cli: Cli) -> Result<(), CliError> {
 /// Decodes an image file with the default limits.
 pub(crate) fn read_image(path: &Path) -> Result<crate::imaging::RgbImage32, CliError> {
     Ok(decode_image_file(path, ImageLimits::default())?)
+}
+
+/// Decodes a template and its mask: `mask_path` (0 = ignore, anything else = use), or else
+/// the template's own alpha channel where it has transparent pixels (transparent = ignore).
+pub(crate) fn read_template(
+    path: &Path,
+    mask_path: Option<&Path>,
+) -> Result<(crate::imaging::RgbImage32, Option<TemplateMask>), CliError> {
+    let bytes = std::fs::read(path).map_err(|e| CliError::io(path, e))?;
+    let what = path.display().to_string();
+    let (template, opacity) =
+        crate::imaging::decode_image_and_opacity(&bytes, &what, ImageLimits::default())?;
+    let mask = match (mask_path, opacity) {
+        (Some(mask_path), _) => {
+            let mask = TemplateMask::from_image(&read_image(mask_path)?)
+                .map_err(|e| CliError::Input(format!("{}: {e}", mask_path.display())))?;
+            mask.check_fits(template.width, template.height)
+                .map_err(|e| CliError::Input(format!("{}: {e}", mask_path.display())))?;
+            Some(mask)
+        }
+        (None, Some(opaque)) => Some(
+            TemplateMask::new(template.width, template.height, opaque)
+                .map_err(|e| CliError::Input(format!("{what} (its alpha channel): {e}")))?,
+        ),
+        (None, None) => None,
+    };
+    Ok((template, mask))
 }

@@ -24,12 +24,18 @@ use tokio::sync::{oneshot, watch};
 
 use super::metrics::Metrics;
 use crate::imaging::RgbImage32;
-use crate::matcher::{EncodedTemplate, MatchError, MatchJob, MatchOutcome, Matcher, ValidOptions};
+use crate::matcher::{
+    EncodedTemplate, MatchError, MatchJob, MatchOutcome, Matcher, TemplateMask, ValidOptions,
+};
 
 /// What the model thread runs: the [`Matcher`] in production, a fake in the unit tests (which
 /// gate it to see exactly how work is batched).
 pub trait MatchPipeline: Send + 'static {
-    fn encode_template(&self, image: &RgbImage32) -> Result<EncodedTemplate, MatchError>;
+    fn encode_template(
+        &self,
+        image: &RgbImage32,
+        mask: Option<&TemplateMask>,
+    ) -> Result<EncodedTemplate, MatchError>;
     /// Runs `jobs` as one batch. `still_wanted(i)` tells whether job `i`'s caller still waits;
     /// a pipeline may skip the rest of an unwanted job's work and answer `None` for it.
     fn match_many(
@@ -59,8 +65,12 @@ pub struct BatchLimits {
 }
 
 impl MatchPipeline for Matcher {
-    fn encode_template(&self, image: &RgbImage32) -> Result<EncodedTemplate, MatchError> {
-        Matcher::encode_template(self, image)
+    fn encode_template(
+        &self,
+        image: &RgbImage32,
+        mask: Option<&TemplateMask>,
+    ) -> Result<EncodedTemplate, MatchError> {
+        Matcher::encode_masked_template(self, image, mask)
     }
 
     fn match_many(
@@ -83,6 +93,8 @@ pub struct MatchWork {
     pub options: ValidOptions,
     /// Dropped unanswered once this has passed.
     pub deadline: Option<Instant>,
+    /// Answered with what the search has by then ([`MatchJob::answer_by`]).
+    pub answer_by: Option<Instant>,
     pub reply: oneshot::Sender<Result<BatchAnswer, BatchError>>,
     /// The request's span: the batch that runs this search follows from it.
     pub span: tracing::Span,
@@ -114,6 +126,7 @@ pub enum BatchError {
 /// A template to encode and where its encoding goes.
 type EncodeWork = (
     RgbImage32,
+    Option<TemplateMask>,
     oneshot::Sender<Result<EncodedTemplate, EncodeError>>,
 );
 
@@ -213,11 +226,15 @@ impl Batcher {
         }
     }
 
-    /// Encodes a template on the model thread.
-    pub async fn encode(&self, image: RgbImage32) -> Result<EncodedTemplate, EncodeError> {
+    /// Encodes a template (and its mask) on the model thread.
+    pub async fn encode(
+        &self,
+        image: RgbImage32,
+        mask: Option<TemplateMask>,
+    ) -> Result<EncodedTemplate, EncodeError> {
         let (reply, answer) = oneshot::channel();
         self.encodings
-            .send((image, reply))
+            .send((image, mask, reply))
             .map_err(|_| EncodeError::Gone(ModelGone))?;
         answer.await.map_err(|_| EncodeError::Gone(ModelGone))?
     }
@@ -344,9 +361,9 @@ fn run_model_thread(
         // for batching.
         while let Some(work) = next.take() {
             match work {
-                Next::Encode((image, reply)) => {
+                Next::Encode((image, mask, reply)) => {
                     let encoded = unless_panicked("a template", &metrics, || {
-                        pipeline.encode_template(&image)
+                        pipeline.encode_template(&image, mask.as_ref())
                     })
                     .ok_or(EncodeError::ModelFailed)
                     .and_then(|r| r.map_err(EncodeError::Match));
@@ -397,6 +414,7 @@ fn run_batch(pipeline: &impl MatchPipeline, live: Vec<(MatchWork, Instant)>, met
             template: &work.template,
             image: &work.image,
             options: &work.options,
+            answer_by: work.answer_by,
         })
         .collect();
     // A client that leaves while the network runs spares its job's verification.
@@ -460,7 +478,11 @@ mod tests {
     const PANICS: u32 = 13;
 
     impl MatchPipeline for GatedPipeline {
-        fn encode_template(&self, image: &RgbImage32) -> Result<EncodedTemplate, MatchError> {
+        fn encode_template(
+            &self,
+            image: &RgbImage32,
+            _mask: Option<&TemplateMask>,
+        ) -> Result<EncodedTemplate, MatchError> {
             assert_ne!(image.width, PANICS, "a bug in the encoder");
             Ok(template(image.width))
         }
@@ -491,6 +513,7 @@ mod tests {
                                 network_score: 1.0,
                             }],
                             timings: Default::default(),
+                            timed_out: false,
                         })
                     })
                 })
@@ -508,6 +531,8 @@ mod tests {
             height: 8,
             kernel: Tensor::zeros([1, 96, 9, 9], &Device::flex()),
             gray: Arc::new(GrayImage32::from_rgb(&image(8))),
+            reversed_kernel: Tensor::zeros([1, 96, 9, 9], &Device::flex()),
+            reversed_gray: Arc::new(GrayImage32::from_rgb(&image(8))),
         }
     }
 
@@ -566,6 +591,7 @@ mod tests {
                     image: image(width),
                     options: ValidOptions::default(),
                     deadline,
+                    answer_by: None,
                     reply,
                     span: tracing::Span::none(),
                 })
@@ -736,7 +762,7 @@ mod tests {
             tokio::runtime::Builder::new_current_thread()
                 .build()
                 .unwrap()
-                .block_on(batcher.encode(image(77)))
+                .block_on(batcher.encode(image(77), None))
         });
         h.release_batch();
         h.release_batch();
@@ -754,7 +780,7 @@ mod tests {
         tokio::runtime::Builder::new_current_thread()
             .build()
             .unwrap()
-            .block_on(batcher.encode(image(width)))
+            .block_on(batcher.encode(image(width), None))
     }
 
     #[test]

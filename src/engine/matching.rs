@@ -30,10 +30,16 @@ pub struct MatchAnswer {
     pub timings: MatchTimings,
     pub queue_ms: f64,
     pub batch_size: usize,
+    /// The options' time limit came first ([`crate::matcher::MatchOutcome::timed_out`]).
+    pub timed_out: bool,
+    /// The registered template's width and height (what the poses' scales refer to).
+    pub template_size: (u32, u32),
 }
 
 impl Engine {
-    /// Finds the template in `image` (optionally only inside `roi`).
+    /// Finds the template in `image` (optionally only inside `roi`). Past `deadline` the
+    /// request is dropped unanswered (DEADLINE_EXCEEDED); at `answer_by` (the options'
+    /// `timeout_ms` after the request arrived) the network path answers with what it has.
     pub async fn match_image(
         &self,
         template_id: &str,
@@ -41,6 +47,7 @@ impl Engine {
         options: ValidOptions,
         roi: Option<Roi>,
         deadline: Option<Instant>,
+        answer_by: Option<Instant>,
     ) -> Result<MatchAnswer, EngineError> {
         let template = self.encoded_template(template_id).await?;
         let (image, offset) = match roi {
@@ -59,7 +66,7 @@ impl Engine {
         )?;
         let mut answer = match options.method {
             Method::Tdcm => {
-                self.match_network(template, image, options, deadline)
+                self.match_network(template, image, options, deadline, answer_by)
                     .await?
             }
             Method::Ncc => {
@@ -82,7 +89,9 @@ impl Engine {
         image: RgbImage32,
         options: ValidOptions,
         deadline: Option<Instant>,
+        answer_by: Option<Instant>,
     ) -> Result<MatchAnswer, EngineError> {
+        let template_size = (template.width, template.height);
         crate::matcher::check_network_budget(
             template.width,
             template.height,
@@ -99,6 +108,7 @@ impl Engine {
                 image,
                 options,
                 deadline,
+                answer_by,
                 reply,
                 span: tracing::Span::current(),
             })
@@ -119,6 +129,8 @@ impl Engine {
             timings: answer.outcome.timings,
             queue_ms: answer.queue_ms,
             batch_size: answer.batch_size,
+            timed_out: answer.outcome.timed_out,
+            template_size,
         })
     }
 
@@ -131,6 +143,7 @@ impl Engine {
         options: ValidOptions,
         deadline: Option<Instant>,
     ) -> Result<MatchAnswer, EngineError> {
+        let template_size = (template.width, template.height);
         classical::check_work(
             template.width,
             template.height,
@@ -166,6 +179,8 @@ impl Engine {
             },
             queue_ms,
             batch_size: 1,
+            timed_out: false,
+            template_size,
         })
     }
 }

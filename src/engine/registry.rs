@@ -6,10 +6,12 @@
 use std::collections::BTreeMap;
 use std::sync::Arc;
 
-use super::store::{NewTemplate, PutOutcome, TemplateMeta, content_sha256, encode_png16};
-use super::{Engine, EngineError, blocking};
+use super::store::{
+    NewTemplate, PutOutcome, TemplateMeta, content_sha256, decode_stored, encode_png16,
+};
+use super::{Engine, EngineError, blocking, quoted};
 use crate::imaging::RgbImage32;
-use crate::matcher::EncodedTemplate;
+use crate::matcher::{EncodedTemplate, TemplateMask};
 
 /// Longest accepted template ID, in bytes.
 pub const MAX_TEMPLATE_ID_BYTES: usize = 256;
@@ -22,20 +24,28 @@ pub const DEFAULT_PAGE_SIZE: usize = 100;
 pub const MAX_PAGE_SIZE: usize = 1000;
 
 impl Engine {
-    /// Registers `image` under `template_id` (derived from the content when empty). The same
-    /// image under the same ID is a no-op; a different one needs `replace`. Returns once the
-    /// template is committed to the store.
+    /// Registers `image` under `template_id` (derived from the content when empty), with the
+    /// `mask` of the pixels it ignores, if any. The same image and mask under the same ID is a
+    /// no-op; a different one needs `replace`. Returns once the template is committed to the
+    /// store.
     pub async fn register(
         &self,
         template_id: &str,
         image: RgbImage32,
+        mask: Option<TemplateMask>,
         replace: bool,
         labels: BTreeMap<String, String>,
     ) -> Result<TemplateMeta, EngineError> {
         check_labels(&labels)?;
+        if let Some(mask) = &mask {
+            mask.check_fits(image.width, image.height)
+                .map_err(|e| EngineError::InvalidArgument(e.to_string()))?;
+        }
+        // A mask that uses every pixel is no mask: the template hashes as without one.
+        let mask = mask.filter(|m| !m.uses_everything());
         let image = Arc::new(image);
-        let hashed = image.clone();
-        let content = blocking(move || content_sha256(&hashed)).await?;
+        let (hashed, hashed_mask) = (image.clone(), mask.clone());
+        let content = blocking(move || content_sha256(&hashed, hashed_mask.as_ref())).await?;
         let template_id = if template_id.is_empty() {
             format!("tpl-{}", &content[..16])
         } else {
@@ -53,9 +63,9 @@ impl Engine {
             }
         }
         // Encoding validates the template (size limits) before anything is written.
-        let encoded = Arc::new(self.batcher.encode((*image).clone()).await?);
+        let encoded = Arc::new(self.batcher.encode((*image).clone(), mask.clone()).await?);
         let stored = image.clone();
-        let png = blocking(move || encode_png16(&stored)).await?;
+        let png = blocking(move || encode_png16(&stored, mask.as_ref())).await?;
         let new = NewTemplate {
             template_id: template_id.clone(),
             width: image.width,
@@ -87,17 +97,26 @@ impl Engine {
             .ok_or_else(|| EngineError::NotFound(template_id.to_owned()))
     }
 
-    /// A template's metadata and its stored image file (a 16-bit RGB PNG whose pixels hash to
-    /// the metadata's `content_sha256`), read together.
+    /// A template's metadata, its stored image file (a 16-bit PNG whose pixels hash to the
+    /// metadata's `content_sha256`; RGBA with the mask as alpha when it has one) and its mask,
+    /// read together.
     pub async fn get_with_image(
         &self,
         template_id: &str,
-    ) -> Result<(TemplateMeta, Vec<u8>), EngineError> {
+    ) -> Result<(TemplateMeta, Vec<u8>, Option<TemplateMask>), EngineError> {
         refuse_impossible_id(template_id)?;
-        self.store
+        let (meta, png) = self
+            .store
             .get_with_image(template_id)
             .await?
-            .ok_or_else(|| EngineError::NotFound(template_id.to_owned()))
+            .ok_or_else(|| EngineError::NotFound(template_id.to_owned()))?;
+        let (checked, origin, sha) = (
+            png.clone(),
+            quoted(template_id),
+            meta.content_sha256.clone(),
+        );
+        let (_, mask) = blocking(move || decode_stored(&checked, &origin, &sha)).await??;
+        Ok((meta, png, mask))
     }
 
     /// One page of templates in ID order; the token is where the next page starts.
@@ -165,12 +184,12 @@ impl Engine {
         self.metrics.cache_misses.inc();
         refuse_impossible_id(template_id)?;
         let ticket = self.template_cache.ticket();
-        let (meta, image) = self
+        let (meta, image, mask) = self
             .store
             .load(template_id)
             .await?
             .ok_or_else(|| EngineError::NotFound(template_id.to_owned()))?;
-        let encoded = Arc::new(self.batcher.encode(image).await?);
+        let encoded = Arc::new(self.batcher.encode(image, mask).await?);
         self.template_cache
             .insert_read(template_id, &meta.content_sha256, encoded.clone(), ticket);
         Ok(encoded)

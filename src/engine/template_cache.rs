@@ -139,6 +139,8 @@ mod tests {
             height: 8,
             kernel: burn::prelude::Tensor::zeros([1, 1, 1, 1], &device),
             gray: Arc::new(GrayImage32::from_fn(width as usize, 8, |_, _| 0.0)),
+            reversed_kernel: burn::prelude::Tensor::zeros([1, 1, 1, 1], &device),
+            reversed_gray: Arc::new(GrayImage32::from_fn(width as usize, 8, |_, _| 1.0)),
         })
     }
 

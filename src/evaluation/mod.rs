@@ -11,8 +11,10 @@ use serde::Serialize;
 use crate::geometry::{Pose, angle_distance_deg, rotated_iou};
 use crate::imaging::GrayImage32;
 use crate::matcher::selection::select;
-use crate::matcher::{MatchError, MatchJob, MatchOptions, Matcher, Proposal, ValidOptions};
-use crate::matcher::{answer, with_classical_fallback};
+use crate::matcher::{
+    MatchError, MatchJob, MatchOptions, Matcher, Proposal, TemplateMask, ValidOptions,
+};
+use crate::matcher::{answer, with_classical_fallbacks};
 use crate::refine::refine_pose;
 use crate::synth::SyntheticPair;
 pub use calibration::{Calibration, path_changes};
@@ -83,16 +85,17 @@ pub struct Paths {
 }
 
 /// Runs one generated pair. `options` are the verified path's (refinement on); the network path
-/// keeps its peaks at or above `network_min_score` (heatmap).
+/// keeps its peaks at or above `network_min_score` (heatmap). `mask`: the template's, if any.
 pub fn match_pair(
     matcher: &Matcher,
     pair: &SyntheticPair,
+    mask: Option<&TemplateMask>,
     options: &ValidOptions,
     network_min_score: f32,
     paths: Paths,
 ) -> Result<PairRun, MatchError> {
     let start = Instant::now();
-    let encoded = matcher.encode_template(&pair.template)?;
+    let encoded = matcher.encode_masked_template(&pair.template, mask)?;
     // One network pass serves all three paths: enough peaks for either.
     let budget = options.candidate_budget();
     let propose_options = ValidOptions::derived(MatchOptions {
@@ -105,6 +108,7 @@ pub fn match_pair(
         template: &encoded,
         image: &pair.search,
         options: &propose_options,
+        answer_by: None,
     };
     let proposal = matcher
         .propose(std::slice::from_ref(&job))
@@ -121,6 +125,7 @@ pub fn match_pair(
         proposal
             .candidates
             .iter()
+            .chain(&proposal.reversed)
             .filter(|p| p.network_score >= network_min_score)
             .copied()
             .collect(),
@@ -133,7 +138,7 @@ pub fn match_pair(
     let refined = if paths.refined {
         network
             .iter()
-            .map(|p| refine_pose(&encoded.gray, &image, p))
+            .map(|p| refine_pose(encoded.gray_for(options.polarity.contrasts()[0]), &image, p))
             .collect()
     } else {
         Vec::new()
@@ -157,25 +162,28 @@ pub fn match_pair(
         classical_fallback: false,
         ..(**options).clone()
     });
-    let candidates = proposal
-        .candidates
-        .into_iter()
-        .filter(|p| p.network_score >= options.candidate_threshold)
-        .take(budget)
-        .collect();
+    let candidates_of = |poses: Vec<Pose>| {
+        poses
+            .into_iter()
+            .filter(|p| p.network_score >= options.candidate_threshold)
+            .take(budget)
+            .collect()
+    };
     let verified = answer(
         &MatchJob {
             options: &verified_options,
             ..job
         },
         Proposal {
-            candidates,
+            candidates: candidates_of(proposal.candidates),
+            reversed: candidates_of(proposal.reversed),
             timings: proposal.timings,
+            timed_out: false,
         },
     )
     .poses;
-    let (verified, _) = with_classical_fallback(
-        &encoded.gray,
+    let (verified, _) = with_classical_fallbacks(
+        &encoded,
         &image,
         verified,
         &MatchOptions {
@@ -216,7 +224,7 @@ pub fn evaluate_pairs(
             refined: true,
             verified: false,
         };
-        let run = match_pair(matcher, pair, &options, ANY_PEAK, paths)?;
+        let run = match_pair(matcher, pair, None, &options, ANY_PEAK, paths)?;
         let truth = &pair.truth[0];
         let (tw, th) = (pair.template.width as f32, pair.template.height as f32);
         let error = |poses: &[Pose]| poses.first().map(|p| pair_error(p, truth, tw, th));

@@ -12,12 +12,13 @@ use tonic::{Request, Response, Status, Streaming};
 use tracing::Instrument;
 
 use super::convert::{
-    deadline_of, image_from_proto, options_from_proto, pose_to_proto, status_of, template_info,
+    deadline_of, image_from_proto, options_from_proto, pose_to_proto, status_of,
+    template_from_proto, template_info,
 };
 use super::proto::{self, pose_matcher_server::PoseMatcher};
 use crate::engine::{Engine, EngineError, Metrics, quoted};
 use crate::imaging::{ImageLimits, RgbImage32};
-use crate::matcher::{MatchOptions, TEMPLATE_LIMITS, search_limits};
+use crate::matcher::{MatchOptions, TEMPLATE_LIMITS, TemplateMask, search_limits};
 
 pub struct Api {
     engine: Arc<OnceLock<Arc<Engine>>>,
@@ -49,9 +50,21 @@ impl ImageDecoder {
             .await
     }
 
-    /// A template image, within the template side limits.
-    async fn template_image(&self, image: Option<proto::Image>) -> Result<RgbImage32, EngineError> {
-        self.decode(image, "template image", TEMPLATE_LIMITS).await
+    /// A template image and its mask ([`template_from_proto`]), within the template side
+    /// limits.
+    async fn template_and_mask(
+        &self,
+        image: Option<proto::Image>,
+        mask: Option<proto::Image>,
+    ) -> Result<(RgbImage32, Option<TemplateMask>), EngineError> {
+        let _permit = self
+            .permits
+            .acquire()
+            .await
+            .map_err(|e| EngineError::Internal(format!("decode permits closed: {e}")))?;
+        tokio::task::spawn_blocking(move || template_from_proto(image, mask, TEMPLATE_LIMITS))
+            .await
+            .map_err(|e| EngineError::Internal(format!("image decoding failed: {e}")))?
     }
 
     /// Decodes on a blocking thread (a 40 MP PNG takes long enough to stall the runtime) once
@@ -165,8 +178,18 @@ async fn match_request(
         let image = decoder.search_image(request.image).await?;
         let (width, height) = (image.width, image.height);
         let decode_ms = received.elapsed().as_secs_f64() * 1e3;
+        let answer_by = options
+            .timeout_ms
+            .map(|ms| received + std::time::Duration::from_millis(u64::from(ms)));
         let answer = engine
-            .match_image(&request.template_id, image, options, roi, deadline)
+            .match_image(
+                &request.template_id,
+                image,
+                options,
+                roi,
+                deadline,
+                answer_by,
+            )
             .await?;
         let t = answer.timings;
         tracing::info!(
@@ -181,7 +204,12 @@ async fn match_request(
         Ok(proto::MatchResponse {
             request_id: request.request_id.clone(),
             template_id: request.template_id.clone(),
-            poses: answer.poses.iter().map(pose_to_proto).collect(),
+            timed_out: answer.timed_out,
+            poses: answer
+                .poses
+                .iter()
+                .map(|pose| pose_to_proto(pose, answer.template_size))
+                .collect(),
             image_width: width,
             image_height: height,
             timings: Some(proto::Timings {
@@ -224,14 +252,14 @@ impl PoseMatcher for Api {
         let span = tracing::info_span!("register_template", template_id = %request.template_id.escape_debug());
         let result = async {
             let engine = self.engine()?;
-            let image = self
+            let (image, mask) = self
                 .decoder
-                .template_image(request.image)
+                .template_and_mask(request.image, request.mask)
                 .await
                 .map_err(status_of)?;
             let labels = request.labels.into_iter().collect();
             engine
-                .register(&request.template_id, image, request.replace, labels)
+                .register(&request.template_id, image, mask, request.replace, labels)
                 .await
                 .map(|meta| Response::new(template_info(meta)))
                 .map_err(status_of)
@@ -253,11 +281,13 @@ impl PoseMatcher for Api {
             Ok(engine) if request.include_image => engine
                 .get_with_image(&request.template_id)
                 .await
-                .map(|(meta, png)| {
+                .map(|(meta, png, mask)| {
+                    let encoded = |bytes| proto::Image {
+                        data: Some(proto::image::Data::Encoded(bytes)),
+                    };
                     Response::new(proto::TemplateInfo {
-                        image: Some(proto::Image {
-                            data: Some(proto::image::Data::Encoded(png)),
-                        }),
+                        image: Some(encoded(png)),
+                        mask: mask.map(|m| encoded(m.to_png())),
                         ..template_info(meta)
                     })
                 })

@@ -10,8 +10,10 @@ use super::proto;
 use crate::engine::store::{StoreError, TemplateMeta};
 use crate::engine::{EngineError, Roi};
 use crate::geometry::Pose;
-use crate::imaging::{DecodeError, ImageLimits, RgbImage32, decode_image};
-use crate::matcher::{AngleRange, MatchOptions, Method, ScaleRange, ValidOptions};
+use crate::imaging::{DecodeError, ImageLimits, RgbImage32, decode_image_and_opacity};
+use crate::matcher::{
+    AngleRange, MaskError, MatchOptions, Method, Polarity, ScaleRange, TemplateMask, ValidOptions,
+};
 
 /// The one mapping from engine errors to gRPC status codes. Failures of ours (store, internal)
 /// are logged in full and answered without server paths or details.
@@ -64,6 +66,16 @@ pub fn image_from_proto(
     what: &str,
     limits: ImageLimits,
 ) -> Result<RgbImage32, EngineError> {
+    image_and_opacity_from_proto(image, what, limits).map(|(image, _)| image)
+}
+
+/// [`image_from_proto`], and which pixels are opaque where an encoded image has transparent
+/// ones (see [`crate::imaging::decode_image_and_opacity`]); raw images have no alpha.
+pub fn image_and_opacity_from_proto(
+    image: Option<proto::Image>,
+    what: &str,
+    limits: ImageLimits,
+) -> Result<(RgbImage32, Option<Vec<bool>>), EngineError> {
     let invalid = |m: String| EngineError::InvalidArgument(m);
     let data = image.and_then(|i| i.data).ok_or_else(|| {
         invalid(format!(
@@ -71,11 +83,37 @@ pub fn image_from_proto(
         ))
     })?;
     match data {
-        proto::image::Data::Encoded(bytes) => {
-            decode_image(&bytes, what, limits).map_err(|e: DecodeError| invalid(e.to_string()))
-        }
-        proto::image::Data::Raw(raw) => raw_to_rgb(&raw, what, limits),
+        proto::image::Data::Encoded(bytes) => decode_image_and_opacity(&bytes, what, limits)
+            .map_err(|e: DecodeError| invalid(e.to_string())),
+        proto::image::Data::Raw(raw) => raw_to_rgb(&raw, what, limits).map(|image| (image, None)),
     }
+}
+
+/// A registration's template and mask: the request's `mask` image (black = ignore, anything
+/// else = use), or else the template's own transparent pixels; checked against the template's
+/// size and for enough used pixels.
+pub fn template_from_proto(
+    image: Option<proto::Image>,
+    mask: Option<proto::Image>,
+    limits: ImageLimits,
+) -> Result<(RgbImage32, Option<TemplateMask>), EngineError> {
+    let invalid = |field: &str, e: MaskError| EngineError::InvalidArgument(format!("{field}: {e}"));
+    let (template, opaque) = image_and_opacity_from_proto(image, "template image", limits)?;
+    let mask = match (mask.filter(|m| m.data.is_some()), opaque) {
+        (Some(mask), _) => {
+            let mask_image = image_from_proto(Some(mask), "mask", limits)?;
+            let mask = TemplateMask::from_image(&mask_image).map_err(|e| invalid("mask", e))?;
+            mask.check_fits(template.width, template.height)
+                .map_err(|e| invalid("mask", e))?;
+            Some(mask)
+        }
+        (None, Some(opaque)) => Some(
+            TemplateMask::new(template.width, template.height, opaque)
+                .map_err(|e| invalid("template image (its alpha channel)", e))?,
+        ),
+        (None, None) => None,
+    };
+    Ok((template, mask))
 }
 
 fn raw_to_rgb(
@@ -151,6 +189,8 @@ pub fn options_from_proto(
         max_candidates,
         method,
         no_classical_fallback,
+        polarity,
+        timeout_ms,
     } = options.unwrap_or_default();
     let invalid = |m: String| Err(EngineError::InvalidArgument(m));
     let finite = [
@@ -223,6 +263,19 @@ pub fn options_from_proto(
                 ));
             }
         },
+        timeout_ms: timeout_ms.or(defaults.timeout_ms),
+        polarity: match proto::Polarity::try_from(polarity) {
+            Ok(proto::Polarity::Unspecified) => defaults.polarity,
+            Ok(proto::Polarity::Same) => Polarity::Same,
+            Ok(proto::Polarity::Reversed) => Polarity::Reversed,
+            Ok(proto::Polarity::Either) => Polarity::Either,
+            Err(_) => {
+                return invalid(format!(
+                    "options.polarity {polarity} is unknown: use POLARITY_SAME (1), \
+                     POLARITY_REVERSED (2) or POLARITY_EITHER (3)"
+                ));
+            }
+        },
     };
     let options = options
         .validate()
@@ -238,8 +291,12 @@ pub fn options_from_proto(
     Ok((options, roi))
 }
 
-pub fn pose_to_proto(pose: &Pose) -> proto::Pose {
+/// A pose of a `template_width x template_height` template, with its transform.
+pub fn pose_to_proto(pose: &Pose, (template_width, template_height): (u32, u32)) -> proto::Pose {
     proto::Pose {
+        transform: pose
+            .transform(template_width as f32, template_height as f32)
+            .to_vec(),
         x: pose.x,
         y: pose.y,
         angle_deg: pose.angle_deg,
@@ -261,6 +318,7 @@ pub fn template_info(meta: TemplateMeta) -> proto::TemplateInfo {
         updated_unix_ms: meta.updated_unix_ms,
         version: meta.version,
         image: None,
+        mask: None,
     }
 }
 
@@ -449,6 +507,28 @@ mod tests {
             })
             .contains("finite")
         );
+    }
+
+    #[test]
+    fn polarity_comes_from_the_request_or_else_the_server_and_unknown_values_are_refused() {
+        let polarity = |requested: i32, server: Polarity| {
+            let defaults = MatchOptions {
+                polarity: server,
+                ..MatchOptions::default()
+            };
+            let request = proto::MatchOptions {
+                polarity: requested,
+                ..Default::default()
+            };
+            options_from_proto(Some(request), &defaults).map(|(options, _)| options.polarity)
+        };
+        assert_eq!(polarity(0, Polarity::Same).unwrap(), Polarity::Same);
+        assert_eq!(polarity(0, Polarity::Either).unwrap(), Polarity::Either);
+        assert_eq!(polarity(2, Polarity::Same).unwrap(), Polarity::Reversed);
+        assert_eq!(polarity(3, Polarity::Same).unwrap(), Polarity::Either);
+        assert_eq!(polarity(1, Polarity::Either).unwrap(), Polarity::Same);
+        let refused = polarity(9, Polarity::Same).unwrap_err().to_string();
+        assert!(refused.contains("options.polarity 9"), "{refused}");
     }
 
     #[test]

@@ -132,6 +132,36 @@ pub fn decode_image(
     what: &str,
     limits: ImageLimits,
 ) -> Result<RgbImage32, DecodeError> {
+    Ok(RgbImage32::from_dynamic(&decode_dynamic(
+        bytes, what, limits,
+    )?))
+}
+
+/// [`decode_image`], and which pixels are opaque (alpha at least half) where the image has an
+/// alpha channel with a pixel that is not: a template drawn with its don't-care area
+/// transparent. `None` for images without alpha or wholly opaque ones.
+pub fn decode_image_and_opacity(
+    bytes: &[u8],
+    what: &str,
+    limits: ImageLimits,
+) -> Result<(RgbImage32, Option<Vec<bool>>), DecodeError> {
+    let image = decode_dynamic(bytes, what, limits)?;
+    let opaque = image.color().has_alpha().then(|| {
+        image
+            .to_luma_alpha32f()
+            .pixels()
+            .map(|p| p.0[1] >= 0.5)
+            .collect::<Vec<bool>>()
+    });
+    let opaque = opaque.filter(|o| o.iter().any(|&opaque| !opaque));
+    Ok((RgbImage32::from_dynamic(&image), opaque))
+}
+
+fn decode_dynamic(
+    bytes: &[u8],
+    what: &str,
+    limits: ImageLimits,
+) -> Result<image::DynamicImage, DecodeError> {
     let what = what.to_owned();
     if bytes.is_empty() {
         return Err(DecodeError::Empty { what });
@@ -173,6 +203,5 @@ pub fn decode_image(
     // Room for a 16-bit RGBA decode of the announced size, and no more.
     decode_limits.max_alloc = Some(pixels * 8 + HEADER_MAX_ALLOC);
     reader.limits(decode_limits);
-    let image = reader.decode().map_err(failed)?;
-    Ok(RgbImage32::from_dynamic(&image))
+    reader.decode().map_err(failed)
 }

@@ -8,7 +8,9 @@ mod gray;
 mod rgb;
 mod tensor;
 
-pub use decode::{DecodeError, ImageLimits, decode_image, decode_image_file};
+pub use decode::{
+    DecodeError, ImageLimits, decode_image, decode_image_and_opacity, decode_image_file,
+};
 pub use gray::{BilinearTap, GrayImage32, gaussian_blur, gradients};
 pub use rgb::{RgbImage32, bilinear_rgb8, blur_121, pad_to_min_side};
 pub use tensor::{InputConvention, resize_rgb, to_network_input};

@@ -17,7 +17,7 @@ use crate::imaging::{GrayImage32, gaussian_blur};
 use crate::refine::{TemplatePoints, zncc};
 
 use super::error::MatchError;
-use super::options::MatchOptions;
+use super::options::{Contrast, MatchOptions};
 use super::selection::{ANGLE_MARGIN_DEG, select};
 use super::verification::{Screened, Verifier, correlation_length};
 
@@ -133,7 +133,8 @@ pub fn check_work(
     options: &MatchOptions,
 ) -> Result<(), MatchError> {
     let plan = SearchPlan::new(tw as usize, th as usize, iw as usize, ih as usize, options);
-    let scorings = plan.scorings();
+    // Each contrast the polarity asks for is a search of its own.
+    let scorings = plan.scorings() * options.polarity.contrasts().len() as u64;
     if scorings > MAX_SCORINGS {
         return Err(MatchError::ClassicalTooSlow {
             scorings,
@@ -143,9 +144,38 @@ pub fn check_work(
     Ok(())
 }
 
-/// Finds the template in the image; poses in the public convention, best first. The caller
-/// checks the cost first ([`check_work`]).
+/// Finds the template in the image, in each contrast the options' polarity asks for; poses in
+/// the public convention, best first. The caller checks the cost first ([`check_work`]).
 pub fn ncc_match(template: &GrayImage32, image: &GrayImage32, options: &MatchOptions) -> Vec<Pose> {
+    let contrasts = options.polarity.contrasts();
+    let mut poses = Vec::new();
+    for &contrast in contrasts {
+        poses.extend(match contrast {
+            Contrast::Same => ncc_match_contrast(template, image, options),
+            Contrast::Reversed => {
+                let mut reversed = template.clone();
+                reversed.values.iter_mut().for_each(|v| *v = 1.0 - *v);
+                ncc_match_contrast(&reversed, image, options)
+            }
+        });
+    }
+    if contrasts.len() > 1 {
+        poses = select(
+            poses,
+            options,
+            template.width as f32,
+            template.height as f32,
+        );
+    }
+    poses
+}
+
+/// [`ncc_match`] for one contrast (the template's own).
+fn ncc_match_contrast(
+    template: &GrayImage32,
+    image: &GrayImage32,
+    options: &MatchOptions,
+) -> Vec<Pose> {
     let plan = SearchPlan::new(
         template.width,
         template.height,

@@ -32,4 +32,6 @@ pub enum MatchError {
         "the classical matcher would score {scorings} template placements here (limit {limit}); crop the image (roi), narrow the angle or scale range, or use the network (method tdcm)"
     )]
     ClassicalTooSlow { scorings: u64, limit: u64 },
+    #[error(transparent)]
+    Mask(#[from] super::template_mask::MaskError),
 }

@@ -20,6 +20,7 @@ pub mod peaks;
 mod pipeline_tests;
 pub mod plan;
 pub mod selection;
+pub mod template_mask;
 pub mod verification;
 
 use std::sync::Arc;
@@ -35,11 +36,14 @@ pub use error::MatchError;
 pub use limits::{
     MAX_TEMPLATE_SIDE, MIN_IMAGE_SIDE, MIN_TEMPLATE_SIDE, TEMPLATE_LIMITS, search_limits,
 };
-pub use options::{AngleRange, MatchOptions, Method, OptionsError, ScaleRange, ValidOptions};
+pub use options::{
+    AngleRange, Contrast, MatchOptions, Method, OptionsError, Polarity, ScaleRange, ValidOptions,
+};
 use peaks::{MapPlanes, find_peaks, peak_at};
 use plan::{MAX_NETWORK_PIXELS, MIN_INPUT_SIDE, ScalePass, Tile};
 use selection::select;
-use verification::verify_candidates;
+pub use template_mask::{MaskError, TemplateMask};
+use verification::{verify_candidates, verify_candidates_until};
 
 /// A template after encoding: what the service caches per template ID.
 #[derive(Debug, Clone)]
@@ -51,6 +55,28 @@ pub struct EncodedTemplate {
     pub kernel: Tensor<4>,
     /// The registered template in grey, for refinement.
     pub gray: Arc<GrayImage32>,
+    /// The same for the template with its contrast reversed (`1 − v`): what a search for
+    /// [`Polarity::Reversed`] parts uses. Encoded together with the template, in one batch.
+    pub reversed_kernel: Tensor<4>,
+    pub reversed_gray: Arc<GrayImage32>,
+}
+
+impl EncodedTemplate {
+    /// The kernels that look for parts of `contrast`.
+    pub fn kernel_for(&self, contrast: Contrast) -> &Tensor<4> {
+        match contrast {
+            Contrast::Same => &self.kernel,
+            Contrast::Reversed => &self.reversed_kernel,
+        }
+    }
+
+    /// The grey template that parts of `contrast` look like.
+    pub fn gray_for(&self, contrast: Contrast) -> &GrayImage32 {
+        match contrast {
+            Contrast::Same => &self.gray,
+            Contrast::Reversed => &self.reversed_gray,
+        }
+    }
 }
 
 /// One search to run.
@@ -58,6 +84,15 @@ pub struct MatchJob<'a> {
     pub template: &'a EncodedTemplate,
     pub image: &'a RgbImage32,
     pub options: &'a ValidOptions,
+    /// When the answer is due ([`MatchOptions::timeout_ms`] after the request arrived): work
+    /// still to do then is left out and the answer says it timed out. `None`: no limit.
+    pub answer_by: Option<Instant>,
+}
+
+impl MatchJob<'_> {
+    fn overdue(&self) -> bool {
+        self.answer_by.is_some_and(|due| Instant::now() >= due)
+    }
 }
 
 /// Where the time of one job went.
@@ -66,7 +101,7 @@ pub struct MatchTimings {
     pub prepare_ms: f64,
     pub network_ms: f64,
     pub peaks_ms: f64,
-    /// Screening every candidate (0 without refinement).
+    /// Converting the image to grey and screening every candidate (0 without refinement).
     pub screen_ms: f64,
     /// Refining and scoring the candidates that survived the screen.
     pub refine_ms: f64,
@@ -86,6 +121,9 @@ impl MatchTimings {
 pub struct MatchOutcome {
     pub poses: Vec<Pose>,
     pub timings: MatchTimings,
+    /// The job's time limit came before its work was done: `poses` are what was verified by
+    /// then (network pieces, candidates or the classical fallback left out).
+    pub timed_out: bool,
 }
 
 /// The network's candidates for one job, before verification.
@@ -93,10 +131,16 @@ pub struct MatchOutcome {
 pub struct Proposal {
     /// Network poses in image coordinates (`score` = `network_score` = heatmap value), best
     /// first: every peak at or above the candidate threshold (`min_score` without refinement),
-    /// the best of every tile's up to the budget of the search.
+    /// the best of every tile's up to the budget of the search. Parts of the template's own
+    /// contrast ([`Contrast::Same`]; empty when the job's polarity is `reversed`).
     pub candidates: Vec<Pose>,
+    /// The same for parts of reversed contrast (empty unless the job's polarity asks for
+    /// them); each contrast has its own budget.
+    pub reversed: Vec<Pose>,
     /// Time so far (prepare, network, peaks).
     pub timings: MatchTimings,
+    /// Network pieces were left out because the job's time limit had come.
+    pub timed_out: bool,
 }
 
 /// The network and how to feed it. Not thread-safe by design: one owner (a CLI, the service's
@@ -115,9 +159,10 @@ pub struct Matcher {
     grid_scale: f32,
 }
 
-/// A network-input piece: one tile of one pass of one job.
+/// A network-input piece: one tile of one pass of one job, searched for one contrast.
 struct Piece {
     job: usize,
+    contrast: Contrast,
     pass: ScalePass,
     tile: Tile,
     /// Network input size (the tile's, after padding small images).
@@ -179,15 +224,48 @@ impl Matcher {
 
     /// Resizes a template to the network grid and encodes it into its kernels.
     pub fn encode_template(&self, template: &RgbImage32) -> Result<EncodedTemplate, MatchError> {
+        self.encode_masked_template(template, None)
+    }
+
+    /// [`Matcher::encode_template`] with the pixels `mask` ignores left out of every score
+    /// and refinement ([`template_mask`]).
+    pub fn encode_masked_template(
+        &self,
+        template: &RgbImage32,
+        mask: Option<&TemplateMask>,
+    ) -> Result<EncodedTemplate, MatchError> {
         check_template_size(template.width, template.height)?;
+        if let Some(mask) = mask {
+            mask.check_fits(template.width, template.height)?;
+        }
+        let mask = mask.filter(|m| !m.uses_everything());
+        // The network sees the template as registered, ignored pixels included: it was
+        // trained on whole templates, and showing it a neutral patch there instead found fewer
+        // parts (template_mask.rs).
         let grid = resize_rgb(template, TEMPLATE_GRID as u32, TEMPLATE_GRID as u32);
-        let input = to_network_input(&[&grid], self.convention, &self.device);
-        let kernel = self.network.encode_templates(input);
+        let mut reversed_grid = grid.clone();
+        reversed_grid.pixels.iter_mut().for_each(|v| *v = 1.0 - *v);
+        let input = to_network_input(&[&grid, &reversed_grid], self.convention, &self.device);
+        let [kernel, reversed_kernel] = self
+            .network
+            .encode_templates(input)
+            .chunk(2, 0)
+            .try_into()
+            .expect("two templates in, two kernels out");
+        let gray = GrayImage32::from_rgb(template);
+        let gray = match mask {
+            Some(mask) => mask.applied_to(&gray),
+            None => gray,
+        };
+        let mut reversed_gray = gray.clone();
+        reversed_gray.values.iter_mut().for_each(|v| *v = 1.0 - *v);
         Ok(EncodedTemplate {
             width: template.width,
             height: template.height,
             kernel,
-            gray: Arc::new(GrayImage32::from_rgb(template)),
+            gray: Arc::new(gray),
+            reversed_kernel,
+            reversed_gray: Arc::new(reversed_gray),
         })
     }
 
@@ -202,6 +280,9 @@ impl Matcher {
             template,
             image,
             options,
+            answer_by: options
+                .timeout_ms
+                .map(|ms| Instant::now() + std::time::Duration::from_millis(u64::from(ms))),
         }])
         .pop()
         .expect("one job in, one answer out")
@@ -264,6 +345,16 @@ impl Matcher {
             let pixels = group[0].width * group[0].height;
             let per_batch = (self.max_whole_pixels() / pixels).max(1);
             for batch in group.chunks_mut(per_batch) {
+                // A job past its time limit gets no more network pieces (one piece is the
+                // granularity: a 2048 frame's tile, docs/service.md "Time limits").
+                if batch.iter().all(|p| jobs[p.job].overdue()) {
+                    for piece in batch.iter() {
+                        if let Ok(proposal) = &mut results[piece.job] {
+                            proposal.timed_out = true;
+                        }
+                    }
+                    continue;
+                }
                 let t = Instant::now();
                 let maps = self.run_network(jobs, batch);
                 network_ms += ms_since(t);
@@ -271,9 +362,11 @@ impl Matcher {
                 let per_piece = maps.len() / batch.len();
                 for (piece, maps) in batch.iter().zip(maps.chunks_exact(per_piece)) {
                     if let Ok(proposal) = &mut results[piece.job] {
-                        proposal
-                            .candidates
-                            .extend(piece_poses(piece, maps, &jobs[piece.job]));
+                        let poses = piece_poses(piece, maps, &jobs[piece.job]);
+                        match piece.contrast {
+                            Contrast::Same => proposal.candidates.extend(poses),
+                            Contrast::Reversed => proposal.reversed.extend(poses),
+                        }
                     }
                 }
                 self.network.recycle(maps);
@@ -283,15 +376,13 @@ impl Matcher {
         let count = results.iter().filter(|r| r.is_ok()).count().max(1) as f64;
         for (proposal, job) in results.iter_mut().zip(jobs) {
             let Ok(proposal) = proposal else { continue };
-            proposal
-                .candidates
-                .sort_by(|a, b| b.network_score.total_cmp(&a.network_score));
-            // The budget holds for the whole search, not per tile: a 2048 frame is 9 tiles,
-            // and 9 budgets of low peaks cost the screen more than they find (README
-            // "Verified candidates").
-            proposal
-                .candidates
-                .truncate(peak_threshold_and_limit(job.options).1);
+            for candidates in [&mut proposal.candidates, &mut proposal.reversed] {
+                candidates.sort_by(|a, b| b.network_score.total_cmp(&a.network_score));
+                // The budget holds for the whole search, not per tile: a 2048 frame is 9
+                // tiles, and 9 budgets of low peaks cost the screen more than they find
+                // (docs/verification.md).
+                candidates.truncate(peak_threshold_and_limit(job.options).1);
+            }
             proposal.timings = MatchTimings {
                 prepare_ms: prepare_ms / count,
                 network_ms: network_ms / count,
@@ -318,7 +409,7 @@ impl Matcher {
         let kernels = Tensor::cat(
             batch
                 .iter()
-                .map(|p| jobs[p.job].template.kernel.clone())
+                .map(|p| jobs[p.job].template.kernel_for(p.contrast).clone())
                 .collect(),
             0,
         );
@@ -343,32 +434,91 @@ pub fn answer(job: &MatchJob, proposal: Proposal) -> MatchOutcome {
     let size = (job.template.width as f32, job.template.height as f32);
     let mut timings = proposal.timings;
     let start = Instant::now();
+    let contrasts = job.options.polarity.contrasts();
+    let by_contrast = [
+        (Contrast::Same, proposal.candidates),
+        (Contrast::Reversed, proposal.reversed),
+    ];
+    let mut timed_out = proposal.timed_out;
     let poses = if job.options.verify {
         let image = GrayImage32::from_rgb(job.image);
-        let verified = verify_candidates(
-            &job.template.gray,
-            size,
-            &image,
-            proposal.candidates,
-            job.options,
-        );
-        timings.refine_ms = verified.confirm_ms;
-        timings.screen_ms = start.elapsed().as_secs_f64() * 1e3 - verified.confirm_ms;
-        let (poses, fallback_ms) = with_classical_fallback(
-            &job.template.gray,
-            &image,
-            verified.poses,
-            job.options,
-            job.options.effective_min_score(),
-        );
-        timings.fallback_ms = fallback_ms;
+        timings.screen_ms = start.elapsed().as_secs_f64() * 1e3;
+        let mut poses = Vec::new();
+        for (contrast, candidates) in by_contrast {
+            if !contrasts.contains(&contrast) {
+                continue;
+            }
+            let verified = verify_candidates_until(
+                job.template.gray_for(contrast),
+                size,
+                &image,
+                candidates,
+                job.options,
+                job.answer_by,
+            );
+            timings.refine_ms += verified.confirm_ms;
+            timings.screen_ms += verified.screen_ms;
+            timed_out |= verified.timed_out;
+            poses.extend(verified.poses);
+        }
+        if contrasts.len() > 1 {
+            // One object seen in both contrasts is one answer.
+            poses = select(poses, job.options, size.0, size.1);
+        }
+        if job.overdue() {
+            // The fallback is a search of its own: not started once the time is up.
+            timed_out |= job.options.classical_fallback
+                && !poses
+                    .iter()
+                    .any(|p| p.score >= job.options.effective_min_score());
+        } else {
+            let (found, fallback_ms) = with_classical_fallbacks(
+                job.template,
+                &image,
+                poses,
+                job.options,
+                job.options.effective_min_score(),
+            );
+            timings.fallback_ms = fallback_ms;
+            poses = found;
+        }
         poses
     } else {
-        let poses = select(proposal.candidates, job.options, size.0, size.1);
+        let candidates = by_contrast.into_iter().flat_map(|(_, c)| c).collect();
+        let poses = select(candidates, job.options, size.0, size.1);
         timings.peaks_ms += start.elapsed().as_secs_f64() * 1e3;
         poses
     };
-    MatchOutcome { poses, timings }
+    MatchOutcome {
+        poses,
+        timings,
+        timed_out,
+    }
+}
+
+/// [`with_classical_fallback`] for each contrast the options' polarity asks for, until an
+/// answer reaches `trigger_score`.
+pub fn with_classical_fallbacks(
+    template: &EncodedTemplate,
+    image: &GrayImage32,
+    answers: Vec<Pose>,
+    options: &MatchOptions,
+    trigger_score: f32,
+) -> (Vec<Pose>, f64) {
+    let mut poses = answers;
+    let mut total_ms = 0.0;
+    for &contrast in options.polarity.contrasts() {
+        let (found, ms) = with_classical_fallback(
+            template.gray_for(contrast),
+            image,
+            poses,
+            options,
+            trigger_score,
+        );
+        poses = found;
+        total_ms += ms;
+    }
+    (poses, total_ms)
 }
 
 /// `answers` and, when none of them reaches `trigger_score` (the caller's `min_score`) and
@@ -489,7 +639,7 @@ fn prepare(
             padded.height as usize,
             max_whole_pixels,
         ) {
-            let planar =
+            let mut planar =
                 if tile.width == padded.width as usize && tile.height == padded.height as usize {
                     convention.normalise(&padded)
                 } else {
@@ -500,14 +650,23 @@ fn prepare(
                         tile.height as u32,
                     ))
                 };
-            pieces.push(Piece {
-                job: index,
-                pass,
-                tile,
-                width: tile.width,
-                height: tile.height,
-                planar,
-            });
+            // The last contrast takes the input, the others a copy.
+            let contrasts = job.options.polarity.contrasts();
+            for (k, &contrast) in contrasts.iter().enumerate() {
+                pieces.push(Piece {
+                    job: index,
+                    contrast,
+                    pass,
+                    tile,
+                    width: tile.width,
+                    height: tile.height,
+                    planar: if k + 1 == contrasts.len() {
+                        std::mem::take(&mut planar)
+                    } else {
+                        planar.clone()
+                    },
+                });
+            }
         }
     }
     Ok(pieces)

@@ -110,6 +110,63 @@ impl std::str::FromStr for Method {
     }
 }
 
+/// Which contrast a part may show against its registered template (Halcon `use_polarity` /
+/// `ignore_global_polarity`, Matrox `M_POLARITY`).
+#[derive(Debug, Clone, Copy, PartialEq, Eq, Default, serde::Serialize, serde::Deserialize)]
+#[serde(rename_all = "lowercase")]
+pub enum Polarity {
+    /// As registered: bright where the template is bright.
+    #[default]
+    Same,
+    /// Reversed: dark where the template is bright (a backlight, another coating).
+    Reversed,
+    /// Either; each answer says which ([`crate::geometry::Pose`] has no field for it: the
+    /// answers' [`Contrast`] travels beside them). About twice the work of one.
+    Either,
+}
+
+/// One of the two contrasts a search looks for.
+#[derive(Debug, Clone, Copy, PartialEq, Eq, Hash)]
+pub enum Contrast {
+    Same,
+    Reversed,
+}
+
+impl Polarity {
+    /// The contrasts a search with this polarity looks for.
+    pub fn contrasts(self) -> &'static [Contrast] {
+        match self {
+            Self::Same => &[Contrast::Same],
+            Self::Reversed => &[Contrast::Reversed],
+            Self::Either => &[Contrast::Same, Contrast::Reversed],
+        }
+    }
+
+    pub fn name(self) -> &'static str {
+        match self {
+            Self::Same => "same",
+            Self::Reversed => "reversed",
+            Self::Either => "either",
+        }
+    }
+}
+
+impl std::str::FromStr for Polarity {
+    type Err = String;
+
+    fn from_str(s: &str) -> Result<Self, String> {
+        match s.trim().to_ascii_lowercase().as_str() {
+            "same" => Ok(Self::Same),
+            "reversed" => Ok(Self::Reversed),
+            "either" => Ok(Self::Either),
+            other => Err(format!(
+                "polarity `{}` is unknown: use same, reversed or either",
+                other.chars().take(40).collect::<String>().escape_debug()
+            )),
+        }
+    }
+}
+
 /// Options of one match request.
 #[derive(Debug, Clone, PartialEq)]
 pub struct MatchOptions {
@@ -144,10 +201,22 @@ pub struct MatchOptions {
     /// (`classical::fallback_candidates`; small searches only). Off: the network's candidates
     /// alone (a frame without the part costs no more than one with it).
     pub classical_fallback: bool,
+    /// Which contrast the part may show ([`Polarity`]); the network and the verification
+    /// search each contrast asked for.
+    pub polarity: Polarity,
+    /// Answer within this many milliseconds of the request's arrival with what was verified
+    /// by then, flagged as timed out, instead of finishing the search (Halcon `timeout`,
+    /// Matrox `M_TIMEOUT`). The answer may come later by one unit of work: one network piece
+    /// (a tile of a large frame) or one candidate's confirmation (docs/service.md). `None`:
+    /// no limit.
+    pub timeout_ms: Option<u32>,
 }
 
 /// Upper bound on `max_instances`: beyond this a request is almost certainly a mistake.
 pub const MAX_INSTANCES_LIMIT: usize = 1000;
+
+/// Upper bound on `timeout_ms`: ten minutes.
+pub const MAX_TIMEOUT_MS: u32 = 600_000;
 
 /// Upper bound on `max_candidates` (per search).
 pub const MAX_CANDIDATES_LIMIT: usize = 4000;
@@ -180,6 +249,8 @@ impl Default for MatchOptions {
             verify: true,
             method: Method::Tdcm,
             classical_fallback: true,
+            polarity: Polarity::Same,
+            timeout_ms: None,
         }
     }
 }
@@ -245,6 +316,15 @@ impl MatchOptions {
         }
         if !(self.max_overlap >= 0.0 && self.max_overlap <= 1.0) {
             return invalid("max_overlap", &self.max_overlap, "a value in [0, 1]".into());
+        }
+        if let Some(timeout_ms) = self.timeout_ms
+            && !(1..=MAX_TIMEOUT_MS).contains(&timeout_ms)
+        {
+            return invalid(
+                "timeout_ms",
+                &timeout_ms,
+                format!("1..={MAX_TIMEOUT_MS} milliseconds, or leave it unset for no limit"),
+            );
         }
         Ok(())
     }
@@ -354,6 +434,13 @@ mod tests {
                 ..d()
             },
             "max_overlap",
+        );
+        refused(
+            MatchOptions {
+                timeout_ms: Some(0),
+                ..d()
+            },
+            "timeout_ms",
         );
     }
 }

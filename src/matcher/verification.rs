@@ -29,7 +29,7 @@ use super::selection::{ANGLE_MARGIN_DEG, select};
 use crate::geometry::{Pose, rotated_iou, wrap_angle_deg};
 use crate::imaging::GrayImage32;
 use crate::refine::{
-    AngleScaleGrid, Scored, TemplatePoints, align, align_from, fine_search, stayed_near,
+    AngleScaleGrid, Coverage, Scored, TemplatePoints, align, align_from, fine_search, stayed_near,
 };
 
 /// Screen ZNCC below which a candidate is not worth confirming: a true object at the right
@@ -120,12 +120,24 @@ const MAX_CHANCE: f32 = 0.8;
 /// well; a detailed one has many. `N_eff = area / (π·ℓ²)` with ℓ the template's
 /// [`correlation_length`].
 pub fn chance_similarity(template: &GrayImage32) -> f32 {
-    let Some(correlation_length) = correlation_length(template) else {
+    chance_of_share(independent_pixels(template), 1.0)
+}
+
+/// The template's number of effectively independent pixels, `area / (π·ℓ²)`; `None` for a
+/// flat template.
+fn independent_pixels(template: &GrayImage32) -> Option<f32> {
+    let correlation_length = correlation_length(template)?;
+    let n = template.values.iter().filter(|v| !v.is_nan()).count() as f32;
+    Some(n / (std::f32::consts::PI * correlation_length.powi(2)))
+}
+
+/// [`chance_similarity`] of a `share` of a template with `independent` pixels in all: a
+/// smaller part bends to fit an unrelated patch more easily.
+fn chance_of_share(independent: Option<f32>, share: f32) -> f32 {
+    let Some(independent) = independent else {
         return MAX_CHANCE;
     };
-    let n = template.values.len() as f32;
-    let independent = n / (std::f32::consts::PI * correlation_length.powi(2));
-    (CHANCE_LOG_HYPOTHESES / independent.max(1.0))
+    (CHANCE_LOG_HYPOTHESES / (independent * share).max(1.0))
         .sqrt()
         .min(MAX_CHANCE)
 }
@@ -133,26 +145,37 @@ pub fn chance_similarity(template: &GrayImage32) -> f32 {
 /// How far apart (pixels) two template pixels must be to vary independently: `ℓ = √2·σ /
 /// rms|∇T|` of a Gaussian random field, from the template's grey-level spread σ and mean
 /// gradient. About a pixel for fine noise, several for smooth content; `None` for a flat
-/// template.
+/// template. Pixels the template's mask ignores (NaN) count in neither.
 pub fn correlation_length(template: &GrayImage32) -> Option<f32> {
     let (w, h) = (template.width, template.height);
     let v = &template.values;
-    let n = v.len() as f32;
-    let mean = v.iter().sum::<f32>() / n;
-    let sigma = (v.iter().map(|x| (x - mean).powi(2)).sum::<f32>() / n).sqrt();
+    let used = || v.iter().filter(|x| !x.is_nan());
+    let n = used().count().max(1) as f32;
+    let mean = used().sum::<f32>() / n;
+    let sigma = (used().map(|x| (x - mean).powi(2)).sum::<f32>() / n).sqrt();
     let mut gradient_sq = 0.0f32;
+    let mut cells = 0usize;
     for y in 0..h.saturating_sub(1) {
         for x in 0..w.saturating_sub(1) {
             let here = v[y * w + x];
-            gradient_sq += (v[y * w + x + 1] - here).powi(2) + (v[(y + 1) * w + x] - here).powi(2);
+            let step = (v[y * w + x + 1] - here).powi(2) + (v[(y + 1) * w + x] - here).powi(2);
+            if !step.is_nan() {
+                gradient_sq += step;
+                cells += 1;
+            }
         }
     }
-    let cells = ((w.saturating_sub(1)) * (h.saturating_sub(1))).max(1) as f32;
+    let cells = cells.max(1) as f32;
     let rms_gradient = (gradient_sq / cells).sqrt();
     if sigma <= 1e-6 || rms_gradient <= 1e-9 {
         return None;
     }
     Some(std::f32::consts::SQRT_2 * sigma / rms_gradient)
+}
+
+/// `(similarity − chance) / (1 − chance)` clamped to [0, 1].
+fn above_chance(similarity: f32, chance: f32) -> f32 {
+    ((similarity - chance) / (1.0 - chance)).clamp(0.0, 1.0)
 }
 
 /// Screens and confirms candidates of one template in one image.
@@ -179,6 +202,10 @@ pub struct Verifier<'a> {
     support: TemplatePoints,
     /// [`chance_similarity`] of the template.
     chance: f32,
+    /// [`independent_pixels`] of the template (the chance level of a visible part).
+    independent: Option<f32>,
+    /// The template in cells: how much of it is visible ([`Verifier::score_at`]).
+    coverage: Coverage,
     /// Scales an answer may have ([`Verifier::plausible`]).
     scale_bounds: (f32, f32),
     /// The caller's scale range, which a confirmed pose is held to ([`Verifier::confirm`]).
@@ -244,6 +271,8 @@ impl<'a> Verifier<'a> {
             sparse: TemplatePoints::new(template, 20),
             support: TemplatePoints::support(template),
             chance: chance_similarity(template),
+            independent: independent_pixels(template),
+            coverage: Coverage::new(template),
             scale_bounds: (scales.0 / SCALE_SLACK, scales.1 * SCALE_SLACK),
             required_scales: scale_range,
         }
@@ -267,7 +296,28 @@ impl<'a> Verifier<'a> {
     /// only a near-perfect match scores high. This is what makes one `min_score` mean the same
     /// for every template.
     pub fn score(&self, similarity: f32) -> f32 {
-        ((similarity - self.chance) / (1.0 - self.chance)).clamp(0.0, 1.0)
+        above_chance(similarity, self.chance)
+    }
+
+    /// The score of the template at `pose`, whose whole-template similarity is `similarity`:
+    /// the better of two readings (docs/accuracy.md, "What a score means"):
+    /// - the whole template's similarity above chance ([`Verifier::score`]);
+    /// - the share of the template that is visible (by structure, cell by cell:
+    ///   [`Coverage`]) times the visible cells' similarity above the chance level of that
+    ///   smaller part.
+    ///
+    /// A clean part scores as before (all of it visible, the two readings agree); a part with
+    /// a quarter covered scores about 0.75 instead of collapsing with the whole-template
+    /// correlation; an unrelated patch has few matching cells, and a product with a small
+    /// share stays small.
+    pub fn score_at(&self, pose: &Pose, similarity: f32) -> f32 {
+        let whole = self.score(similarity);
+        let Some(reading) = self.coverage.measure(self.image, pose) else {
+            return whole;
+        };
+        let chance = chance_of_share(self.independent, reading.visible_points);
+        let partial = reading.visible * above_chance(reading.visible_similarity, chance);
+        whole.max(partial)
     }
 
     /// The similarity of the template at `pose`: ZNCC over its support, in [-1, 1].
@@ -392,7 +442,11 @@ impl<'a> Verifier<'a> {
                 ..pose
             },
             similarity,
-            score: self.score(similarity),
+            score: if similarity > -1.0 {
+                self.score_at(&pose, similarity)
+            } else {
+                0.0
+            },
         }
     }
 
@@ -421,24 +475,49 @@ pub struct Verification {
     pub poses: Vec<Pose>,
     pub screen_ms: f64,
     pub confirm_ms: f64,
+    /// Candidates were left unscreened or unconfirmed because the time limit had come.
+    pub timed_out: bool,
 }
 
 /// Verifies `candidates` (network poses in image coordinates, `network_score` set) of a
 /// `template` in `image`, then selects the answers.
 pub fn verify_candidates(
     template: &GrayImage32,
+    size: (f32, f32),
+    image: &GrayImage32,
+    candidates: Vec<Pose>,
+    options: &MatchOptions,
+) -> Verification {
+    verify_candidates_until(template, size, image, candidates, options, None)
+}
+
+/// [`verify_candidates`] until `answer_by`: a candidate not yet screened or confirmed then is
+/// left out (each takes a fraction of a millisecond to a few milliseconds, the granularity of
+/// the limit), and the verification says it timed out.
+pub fn verify_candidates_until(
+    template: &GrayImage32,
     (tw, th): (f32, f32),
     image: &GrayImage32,
     candidates: Vec<Pose>,
     options: &MatchOptions,
+    answer_by: Option<Instant>,
 ) -> Verification {
     if candidates.is_empty() {
         return Verification {
             poses: Vec::new(),
             screen_ms: 0.0,
             confirm_ms: 0.0,
+            timed_out: false,
         };
     }
+    let left_out = std::sync::atomic::AtomicBool::new(false);
+    let in_time = || {
+        let on_time = answer_by.is_none_or(|due| Instant::now() < due);
+        if !on_time {
+            left_out.store(true, std::sync::atomic::Ordering::Relaxed);
+        }
+        on_time
+    };
     let start = Instant::now();
     let scales = options.scale_range.map(|r| (r.min, r.max));
     let angle_range = options.angle_range;
@@ -447,6 +526,7 @@ pub fn verify_candidates(
     });
     let mut screened: Vec<(Pose, Screened)> = candidates
         .into_par_iter()
+        .filter(|_| in_time())
         .map(|candidate| (candidate, verifier.screen(&candidate)))
         .collect();
     // Best screen first; near-duplicates (the same object seen by two peaks) need no second
@@ -474,6 +554,7 @@ pub fn verify_candidates(
     let start = Instant::now();
     let confirmed: Vec<Pose> = survivors
         .into_par_iter()
+        .filter(|_| in_time())
         .map(
             |Survivor {
                  candidate, screen, ..
@@ -492,5 +573,6 @@ pub fn verify_candidates(
         poses,
         screen_ms,
         confirm_ms: start.elapsed().as_secs_f64() * 1e3,
+        timed_out: left_out.into_inner(),
     }
 }

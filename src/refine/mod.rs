@@ -30,6 +30,9 @@ use crate::geometry::{Pose, wrap_angle_deg};
 
 pub(crate) mod align;
 mod correlate;
+mod coverage;
+
+pub(crate) use coverage::Coverage;
 
 use crate::imaging::GrayImage32;
 
@@ -48,8 +51,8 @@ const ALIGN_SIGMAS: [f32; 3] = [2.0, 1.0, 0.0];
 /// The refinement's alignment runs until a step lowers its residual by less than this share.
 const ALIGN_TOLERANCE: f64 = 1e-5;
 
-/// Every `stride`-th pixel of `template` (at most ~`max_side` per side): offsets from the
-/// template centre and values.
+/// Every `stride`-th pixel of `template` (at most ~`max_side` per side) that is not ignored
+/// (NaN): offsets from the template centre and values.
 fn grid_points(template: &GrayImage32, max_side: usize) -> (Vec<(f32, f32)>, Vec<f32>) {
     let stride = template
         .width
@@ -64,8 +67,12 @@ fn grid_points(template: &GrayImage32, max_side: usize) -> (Vec<(f32, f32)>, Vec
     let mut values = Vec::new();
     for y in (0..template.height).step_by(stride) {
         for x in (0..template.width).step_by(stride) {
-            offsets.push((x as f32 - cx, y as f32 - cy));
-            values.push(template.values[y * template.width + x]);
+            let value = template.values[y * template.width + x];
+            // NaN: a pixel the template's mask ignores (matcher/template_mask.rs).
+            if !value.is_nan() {
+                offsets.push((x as f32 - cx, y as f32 - cy));
+                values.push(value);
+            }
         }
     }
     (offsets, values)

@@ -4,6 +4,7 @@
 //! multi-instance set (rotated, scaled copies of one template pasted with a mask into a 4x4 grid).
 //! Everything is deterministic from a seed: pair `i` depends only on `(seed, i)`.
 
+pub mod conditions;
 mod sampler;
 
 use std::path::{Path, PathBuf};

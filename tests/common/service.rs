@@ -104,6 +104,7 @@ pub fn register_request(id: &str, image: Vec<u8>) -> proto::RegisterTemplateRequ
         image: encoded(image),
         replace: false,
         labels: HashMap::from([("line".to_string(), "4".to_string())]),
+        mask: None,
     }
 }
 

@@ -353,3 +353,125 @@ async fn a_read_only_template_directory_reports_not_serving() {
         "a server path leaked: {status:?}"
     );
 }
+
+/// A mask is checked before anything is stored, kept with the template (its content hash
+/// covers it) and returned by GetTemplate; bad options of the new kinds name their field.
+#[tokio::test(flavor = "multi_thread", worker_threads = 2)]
+async fn masks_are_checked_stored_and_returned_and_new_options_are_validated() {
+    let dir = tempfile::tempdir().unwrap();
+    let (server, mut client) = start(&settings(dir.path(), &[]), untrained_model()).await;
+    let mask_png = |w: u32, h: u32, used: fn(u32, u32) -> bool| {
+        png(&image::RgbImage::from_fn(w, h, |x, y| {
+            let v = if used(x, y) { 255 } else { 0 };
+            image::Rgb([v, v, v])
+        }))
+    };
+    let with_mask = |id: &str, mask: Vec<u8>| proto::RegisterTemplateRequest {
+        mask: encoded(mask),
+        ..register_request(id, template_png(1))
+    };
+    for (what, mask, needle) in [
+        (
+            "a mask of another size",
+            mask_png(36, 36, |_, _| true),
+            "36x40",
+        ),
+        (
+            "a mask that uses nothing",
+            mask_png(36, 40, |_, _| false),
+            "0 pixels",
+        ),
+        ("an undecodable mask", b"not a png".to_vec(), "mask"),
+    ] {
+        let status = client
+            .register_template(with_mask("masked", mask))
+            .await
+            .unwrap_err();
+        assert_eq!(status.code(), Code::InvalidArgument, "{what}: {status:?}");
+        assert!(
+            status.message().contains("mask") && status.message().contains(needle),
+            "{what}: {}",
+            status.message()
+        );
+    }
+    // Nothing was stored by the refused registrations.
+    let missing = client
+        .get_template(proto::GetTemplateRequest {
+            template_id: "masked".into(),
+            include_image: false,
+        })
+        .await
+        .unwrap_err();
+    assert_eq!(missing.code(), Code::NotFound);
+
+    let left_half = mask_png(36, 40, |x, _| x < 18);
+    let masked = client
+        .register_template(with_mask("masked", left_half.clone()))
+        .await
+        .unwrap()
+        .into_inner();
+    let plain = client
+        .register_template(register_request("plain", template_png(1)))
+        .await
+        .unwrap()
+        .into_inner();
+    assert_ne!(masked.content_sha256, plain.content_sha256);
+    // The same pixels without the mask are another template under the ID.
+    let clash = client
+        .register_template(register_request("masked", template_png(1)))
+        .await
+        .unwrap_err();
+    assert_eq!(clash.code(), Code::AlreadyExists, "{clash:?}");
+    let full = client
+        .get_template(proto::GetTemplateRequest {
+            template_id: "masked".into(),
+            include_image: true,
+        })
+        .await
+        .unwrap()
+        .into_inner();
+    let Some(proto::image::Data::Encoded(returned)) = full.mask.and_then(|m| m.data) else {
+        panic!("GetTemplate returned no mask");
+    };
+    let returned = image::load_from_memory(&returned).unwrap().to_luma8();
+    assert_eq!(returned.dimensions(), (36, 40));
+    assert!(
+        returned
+            .enumerate_pixels()
+            .all(|(x, _, p)| (p.0[0] == 255) == (x < 18))
+    );
+    let unmasked = client
+        .get_template(proto::GetTemplateRequest {
+            template_id: "plain".into(),
+            include_image: true,
+        })
+        .await
+        .unwrap()
+        .into_inner();
+    assert!(unmasked.mask.is_none());
+
+    // New match options are validated by name.
+    for (options, field) in [
+        (
+            proto::MatchOptions {
+                timeout_ms: Some(0),
+                ..Default::default()
+            },
+            "timeout_ms",
+        ),
+        (
+            proto::MatchOptions {
+                polarity: 7,
+                ..Default::default()
+            },
+            "polarity",
+        ),
+    ] {
+        let mut request = match_request("masked", png(&scene(120, 120, 4)), "r");
+        request.options = Some(options);
+        let status = client.r#match(request).await.unwrap_err();
+        assert_eq!(status.code(), Code::InvalidArgument, "{field}: {status:?}");
+        assert!(status.message().contains(field), "{}", status.message());
+    }
+    drop(server);
+}

@@ -372,6 +372,7 @@ impl DirectoryStore {
             &path.display().to_string(),
             &meta.content_sha256,
         )
+        .map(|(image, _mask)| image)
     }
 
     /// Removes a template's files; metadata first, so a crash in between leaves an orphan image
@@ -451,7 +452,7 @@ mod tests {
             width: img.width,
             height: img.height,
             labels: [("line".to_string(), "3".to_string())].into(),
-            content_sha256: content_sha256(img),
+            content_sha256: content_sha256(img, None),
             created_unix_ms: 1,
             updated_unix_ms: 1,
             version: 1,
@@ -474,12 +475,12 @@ mod tests {
         assert!(opened.metas.is_empty());
         let img = image(1);
         store
-            .save(&meta("part/7 ü", &img), &encode_png16(&img), None)
+            .save(&meta("part/7 ü", &img), &encode_png16(&img, None), None)
             .unwrap();
         let (store, opened) = DirectoryStore::scan(dir.path()).unwrap();
         assert_eq!(opened.metas, vec![meta("part/7 ü", &img)]);
         let back = store.load_image(&opened.metas[0]).unwrap();
-        assert_eq!(content_sha256(&back), content_sha256(&img));
+        assert_eq!(content_sha256(&back, None), content_sha256(&img, None));
         assert_eq!(back.pixels, img.pixels);
     }
 
@@ -489,13 +490,13 @@ mod tests {
         let (store, _) = DirectoryStore::scan(dir.path()).unwrap();
         let (old, new) = (image(1), image(2));
         store
-            .save(&meta("t", &old), &encode_png16(&old), None)
+            .save(&meta("t", &old), &encode_png16(&old, None), None)
             .unwrap();
         let old_file = store.image_path(&meta("t", &old));
         store
             .save(
                 &meta("t", &new),
-                &encode_png16(&new),
+                &encode_png16(&new, None),
                 Some(&meta("t", &old)),
             )
             .unwrap();
@@ -505,10 +506,13 @@ mod tests {
         // image, which is still there; the new one is an orphan, removed at start.
         let (store, _) = DirectoryStore::scan(dir.path()).unwrap();
         store
-            .save(&meta("u", &old), &encode_png16(&old), None)
+            .save(&meta("u", &old), &encode_png16(&old, None), None)
             .unwrap();
         store
-            .write_atomically(&store.image_path(&meta("u", &new)), &encode_png16(&new))
+            .write_atomically(
+                &store.image_path(&meta("u", &new)),
+                &encode_png16(&new, None),
+            )
             .unwrap();
         let (store, opened) = DirectoryStore::scan(dir.path()).unwrap();
         assert_eq!(opened.orphans_removed, 1);
@@ -521,8 +525,10 @@ mod tests {
         let dir = tempfile::tempdir().unwrap();
         let (store, _) = DirectoryStore::scan(dir.path()).unwrap();
         let (a, b) = (image(1), image(2));
-        store.save(&meta("t", &a), &encode_png16(&a), None).unwrap();
-        fs::write(store.image_path(&meta("t", &a)), encode_png16(&b)).unwrap();
+        store
+            .save(&meta("t", &a), &encode_png16(&a, None), None)
+            .unwrap();
+        fs::write(store.image_path(&meta("t", &a)), encode_png16(&b, None)).unwrap();
         let err = store.load_image(&meta("t", &a)).unwrap_err();
         assert!(err.to_string().contains("hash to"), "{err}");
     }
@@ -533,7 +539,7 @@ mod tests {
         let (store, _) = DirectoryStore::scan(dir.path()).unwrap();
         let img = image(4);
         store
-            .save(&meta("old", &img), &encode_png16(&img), None)
+            .save(&meta("old", &img), &encode_png16(&img, None), None)
             .unwrap();
         let key = DirectoryStore::key("old");
         fs::rename(
@@ -555,10 +561,10 @@ mod tests {
         let (store, _) = DirectoryStore::scan(dir.path()).unwrap();
         let img = image(2);
         store
-            .save(&meta("a", &img), &encode_png16(&img), None)
+            .save(&meta("a", &img), &encode_png16(&img, None), None)
             .unwrap();
         store
-            .save(&meta("b", &img), &encode_png16(&img), None)
+            .save(&meta("b", &img), &encode_png16(&img, None), None)
             .unwrap();
         store.remove_files(&meta("a", &img)).unwrap();
         // A crash after the image was written but before the metadata, and a torn temp file.
@@ -576,13 +582,13 @@ mod tests {
         let (store, _) = DirectoryStore::scan(dir.path()).unwrap();
         let img = image(3);
         store
-            .save(&meta("good", &img), &encode_png16(&img), None)
+            .save(&meta("good", &img), &encode_png16(&img, None), None)
             .unwrap();
         store
-            .save(&meta("damaged", &img), &encode_png16(&img), None)
+            .save(&meta("damaged", &img), &encode_png16(&img, None), None)
             .unwrap();
         store
-            .save(&meta("imageless", &img), &encode_png16(&img), None)
+            .save(&meta("imageless", &img), &encode_png16(&img, None), None)
             .unwrap();
         let damaged = store.meta_path("damaged");
         fs::write(&damaged, b"").unwrap();
@@ -615,8 +621,8 @@ mod tests {
             width: img.width,
             height: img.height,
             labels: Default::default(),
-            content_sha256: content_sha256(img),
-            png: encode_png16(img),
+            content_sha256: content_sha256(img, None),
+            png: encode_png16(img, None),
         };
         let (a, b) = (image(1), image(2));
         let PutOutcome::Written {
@@ -649,7 +655,7 @@ mod tests {
             (2, 10, 13)
         );
         let (_, png) = store.get_with_image("t").unwrap().unwrap();
-        assert_eq!(png, encode_png16(&b));
+        assert_eq!(png, encode_png16(&b, None));
         assert!(store.remove("t").unwrap());
         assert!(!store.remove("t").unwrap());
         assert_eq!(store.count(), 0);

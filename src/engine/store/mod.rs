@@ -22,8 +22,8 @@ use sha2::{Digest, Sha256};
 use tokio::sync::mpsc;
 
 use super::Metrics;
-use crate::imaging::{RgbImage32, decode_image};
-use crate::matcher::TEMPLATE_LIMITS;
+use crate::imaging::{RgbImage32, decode_image_and_opacity};
+use crate::matcher::{TEMPLATE_LIMITS, TemplateMask};
 use directory::DirectoryStore;
 use postgres::{PostgresStore, PostgresUrl};
 
@@ -251,19 +251,20 @@ impl TemplateStore {
         .await
     }
 
-    /// A template's metadata and pixels, checked against its content hash: what a kernel is
-    /// encoded from.
+    /// A template's metadata, pixels and mask, checked against its content hash: what a
+    /// kernel is encoded from.
     pub async fn load(
         &self,
         template_id: &str,
-    ) -> Result<Option<(TemplateMeta, RgbImage32)>, StoreError> {
+    ) -> Result<Option<(TemplateMeta, RgbImage32, Option<TemplateMask>)>, StoreError> {
         let found = self.get_with_image(template_id).await?;
         let Some((meta, png)) = found else {
             return Ok(None);
         };
         let origin = format!("`{}`", meta.template_id.escape_debug());
         let image = blocking(move || {
-            decode_stored(&png, &origin, &meta.content_sha256).map(|image| (meta, image))
+            decode_stored(&png, &origin, &meta.content_sha256)
+                .map(|(image, mask)| (meta, image, mask))
         })
         .await??;
         Ok(Some(image))
@@ -349,25 +350,31 @@ pub(crate) fn now_unix_ms() -> i64 {
         .map_or(0, |d| d.as_millis() as i64)
 }
 
-/// Decodes a stored image and checks it against the hash it was registered with; `origin`
-/// names it in errors (a file, or a template ID in the database).
+/// Decodes a stored image and its mask (the PNG's alpha channel, see [`encode_png16`]) and
+/// checks them against the hash they were registered with; `origin` names it in errors (a
+/// file, or a template ID in the database).
 pub fn decode_stored(
     png: &[u8],
     origin: &str,
     content_sha256: &str,
-) -> Result<RgbImage32, StoreError> {
+) -> Result<(RgbImage32, Option<TemplateMask>), StoreError> {
     let corrupt = |message: String| StoreError::Corrupt {
         origin: origin.to_owned(),
         message,
     };
-    let image = decode_image(png, origin, TEMPLATE_LIMITS).map_err(|e| corrupt(e.to_string()))?;
-    let found = self::content_sha256(&image);
+    let (image, opaque) = decode_image_and_opacity(png, origin, TEMPLATE_LIMITS)
+        .map_err(|e| corrupt(e.to_string()))?;
+    let mask = opaque
+        .map(|used| TemplateMask::new(image.width, image.height, used))
+        .transpose()
+        .map_err(|e| corrupt(e.to_string()))?;
+    let found = self::content_sha256(&image, mask.as_ref());
     if found != content_sha256 {
         return Err(corrupt(format!(
             "its pixels hash to {found}, not to the registered {content_sha256}"
         )));
     }
-    Ok(image)
+    Ok((image, mask))
 }
 
 /// The pixels as 16-bit RGB samples: the stored form and what the content hash covers.
@@ -379,26 +386,46 @@ fn to_rgb16(image: &RgbImage32) -> Vec<u16> {
         .collect()
 }
 
-/// The stored form of a template: a 16-bit RGB PNG, lossless for 8- and 16-bit inputs.
-pub fn encode_png16(image: &RgbImage32) -> Vec<u8> {
+/// The stored form of a template: a 16-bit RGB PNG, lossless for 8- and 16-bit inputs; with a
+/// mask, a 16-bit RGBA PNG whose alpha is 0 where the mask ignores a pixel and opaque
+/// elsewhere (one file, so both stores keep image and mask together, written atomically).
+pub fn encode_png16(image: &RgbImage32, mask: Option<&TemplateMask>) -> Vec<u8> {
     let samples = to_rgb16(image);
-    let buffer: image::ImageBuffer<image::Rgb<u16>, Vec<u16>> =
-        image::ImageBuffer::from_raw(image.width, image.height, samples).expect("sizes agree");
+    let dynamic = match mask {
+        None => image::DynamicImage::ImageRgb16(
+            image::ImageBuffer::from_raw(image.width, image.height, samples).expect("sizes agree"),
+        ),
+        Some(mask) => {
+            let rgba: Vec<u16> = samples
+                .chunks_exact(3)
+                .zip(mask.used())
+                .flat_map(|(rgb, &used)| [rgb[0], rgb[1], rgb[2], if used { u16::MAX } else { 0 }])
+                .collect();
+            image::DynamicImage::ImageRgba16(
+                image::ImageBuffer::from_raw(image.width, image.height, rgba).expect("sizes agree"),
+            )
+        }
+    };
     let mut png = Vec::new();
-    image::DynamicImage::ImageRgb16(buffer)
+    dynamic
         .write_to(&mut std::io::Cursor::new(&mut png), image::ImageFormat::Png)
         .expect("PNG encoding into memory cannot fail");
     png
 }
 
-/// Hex SHA-256 of an image's content (size and 16-bit samples): equal images, equal hashes,
-/// whatever format they arrived in.
-pub fn content_sha256(image: &RgbImage32) -> String {
+/// Hex SHA-256 of a template's content (size and 16-bit samples, then one byte per pixel of
+/// its mask, 1 = used, when it has one): equal templates, equal hashes, whatever format they
+/// arrived in; a template without a mask hashes as it did before masks existed.
+pub fn content_sha256(image: &RgbImage32, mask: Option<&TemplateMask>) -> String {
     let mut hasher = Sha256::new();
     hasher.update(image.width.to_be_bytes());
     hasher.update(image.height.to_be_bytes());
     for sample in to_rgb16(image) {
         hasher.update(sample.to_be_bytes());
+    }
+    if let Some(mask) = mask {
+        let flags: Vec<u8> = mask.used().iter().map(|&used| u8::from(used)).collect();
+        hasher.update(&flags);
     }
     hex::encode(hasher.finalize())
 }
@@ -452,7 +479,26 @@ mod tests {
     fn content_hash_depends_on_pixels_and_size() {
         let a = RgbImage32::new(2, 1, vec![0.0, 0.5, 1.0, 0.25, 0.75, 0.0]);
         let b = RgbImage32::new(1, 2, a.pixels.clone());
-        assert_eq!(content_sha256(&a), content_sha256(&a.clone()));
-        assert_ne!(content_sha256(&a), content_sha256(&b));
+        assert_eq!(content_sha256(&a, None), content_sha256(&a.clone(), None));
+        assert_ne!(content_sha256(&a, None), content_sha256(&b, None));
+    }
+
+    #[test]
+    fn a_mask_is_stored_in_the_png_and_hashed_with_the_pixels() {
+        let (w, h) = (12u32, 10u32);
+        let image = RgbImage32::new(w, h, (0..w * h * 3).map(|i| (i % 7) as f32 / 7.0).collect());
+        let mask = TemplateMask::new(w, h, (0..w * h).map(|i| i % w < 6).collect()).unwrap();
+        let plain = content_sha256(&image, None);
+        let masked = content_sha256(&image, Some(&mask));
+        assert_ne!(plain, masked);
+        let (back, no_mask) = decode_stored(&encode_png16(&image, None), "t", &plain).unwrap();
+        assert!(no_mask.is_none());
+        assert_eq!(content_sha256(&back, None), plain);
+        let (back, back_mask) =
+            decode_stored(&encode_png16(&image, Some(&mask)), "t", &masked).unwrap();
+        assert_eq!(back_mask.as_ref(), Some(&mask));
+        assert_eq!(content_sha256(&back, back_mask.as_ref()), masked);
+        // The same pixels without their mask are not what was registered.
+        assert!(decode_stored(&encode_png16(&image, None), "t", &masked).is_err());
     }
 }

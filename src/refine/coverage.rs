@@ -1,0 +1,262 @@
+//! How much of a part is there: the template split into cells, each correlated on its own.
+//!
+//! Why: one ZNCC over the whole template collapses when a quarter of the part is covered (a
+//! clamp, a cable, a label): the covered pixels add image variance and no covariance, and the
+//! chance-corrected score of a clearly visible part falls from above 0.9 to about 0.5. Halcon's
+//! score is the visible share of the model; this is ours: the share of the template's structure
+//! whose cell matches ([`Coverage::visible`]), and how well the visible cells match together
+//! ([`Coverage::visible_similarity`]). The verifier turns both into one score
+//! (`matcher/verification.rs`, docs/accuracy.md "What a score means").
+
+use super::correlate::{Affine, PointLanes};
+use crate::geometry::Pose;
+use crate::imaging::GrayImage32;
+
+/// Cells per side of the template.
+const CELLS_PER_SIDE: usize = 4;
+
+/// A cell's ZNCC at or below this counts as not matching at all, at or above
+/// [`CELL_MATCHES`] as matching; linear between. A covered cell correlates with the template
+/// only by chance (about ±0.3 for a 9x9 cell of a 36x36 template); a visible one of a right
+/// pose well above 0.5 even under blur.
+const CELL_UNRELATED: f32 = 0.2;
+const CELL_MATCHES: f32 = 0.5;
+
+/// A cell whose template spread is below this (values in [0, 1]; two grey levels) holds no
+/// structure: it weighs nothing in the visible share and always counts as visible.
+const FLAT_CELL_SPREAD: f32 = 2.0 / 255.0;
+
+/// Sums of one cell of points in the image, in f64: enough to combine cells into one ZNCC.
+#[derive(Debug, Clone, Copy, Default)]
+struct CellSums {
+    n: f64,
+    /// Σ t, Σ t² of the template values (centred on the whole template's mean).
+    t: f64,
+    tt: f64,
+    /// Σ I, Σ I², Σ t·I of the image samples.
+    i: f64,
+    ii: f64,
+    ti: f64,
+}
+
+impl CellSums {
+    fn add(&mut self, other: &CellSums) {
+        self.n += other.n;
+        self.t += other.t;
+        self.tt += other.tt;
+        self.i += other.i;
+        self.ii += other.ii;
+        self.ti += other.ti;
+    }
+
+    /// ZNCC of the summed points, in [-1, 1]; -1 for a flat image patch (as
+    /// [`super::zncc`]).
+    fn zncc(&self) -> f32 {
+        if self.n < 2.0 {
+            return -1.0;
+        }
+        let var_t = self.tt - self.t * self.t / self.n;
+        let var_i = self.ii - self.i * self.i / self.n;
+        let flat = self.n * f64::from(super::FLAT_PATCH_SPREAD).powi(2);
+        if var_i <= flat || var_t <= 1e-12 {
+            return -1.0;
+        }
+        let cov = self.ti - self.t * self.i / self.n;
+        (cov / (var_t * var_i).sqrt()).clamp(-1.0, 1.0) as f32
+    }
+}
+
+struct Cell {
+    lanes: PointLanes,
+    /// Σ t and Σ t² of its template values.
+    t: f64,
+    tt: f64,
+    /// Its share of the template's structure (Σ of its own squared deviations), 0 when flat.
+    weight: f32,
+}
+
+/// The template's support points in [`CELLS_PER_SIDE`]² cells.
+pub(crate) struct Coverage {
+    cells: Vec<Cell>,
+    total_weight: f32,
+    points: usize,
+}
+
+/// What [`Coverage::measure`] found at one pose.
+#[derive(Debug, Clone, Copy, PartialEq)]
+pub(crate) struct CoverageReading {
+    /// Share (by structure) of the template whose cell matches, in [0, 1].
+    pub visible: f32,
+    /// ZNCC over the matching cells together, in [-1, 1].
+    pub visible_similarity: f32,
+    /// Share of the support points in the matching cells, in (0, 1].
+    pub visible_points: f32,
+}
+
+impl Coverage {
+    /// Every template pixel up to 48 a side (the similarity's support), in cells.
+    pub(crate) fn new(template: &GrayImage32) -> Self {
+        let (offsets, values) = super::grid_points(template, 48);
+        let mean = values.iter().sum::<f32>() / values.len().max(1) as f32;
+        let (cx, cy) = (
+            (template.width as f32 - 1.0) / 2.0,
+            (template.height as f32 - 1.0) / 2.0,
+        );
+        let cell_of = |(u, v): (f32, f32)| {
+            let col = ((u + cx + 0.5) / template.width as f32 * CELLS_PER_SIDE as f32) as usize;
+            let row = ((v + cy + 0.5) / template.height as f32 * CELLS_PER_SIDE as f32) as usize;
+            row.min(CELLS_PER_SIDE - 1) * CELLS_PER_SIDE + col.min(CELLS_PER_SIDE - 1)
+        };
+        let mut members: Vec<(Vec<(f32, f32)>, Vec<f32>)> =
+            vec![Default::default(); CELLS_PER_SIDE * CELLS_PER_SIDE];
+        for (&offset, &value) in offsets.iter().zip(&values) {
+            let cell = &mut members[cell_of(offset)];
+            cell.0.push(offset);
+            cell.1.push(value - mean);
+        }
+        let cells: Vec<Cell> = members
+            .into_iter()
+            .filter(|(offsets, _)| !offsets.is_empty())
+            .map(|(offsets, values)| {
+                let n = values.len() as f64;
+                let t: f64 = values.iter().map(|&v| f64::from(v)).sum();
+                let tt: f64 = values.iter().map(|&v| f64::from(v).powi(2)).sum();
+                let spread_sq = (tt - t * t / n).max(0.0);
+                let flat = spread_sq / n < f64::from(FLAT_CELL_SPREAD).powi(2);
+                Cell {
+                    lanes: PointLanes::new(&offsets, &values),
+                    t,
+                    tt,
+                    weight: if flat { 0.0 } else { spread_sq as f32 },
+                }
+            })
+            .collect();
+        Self {
+            total_weight: cells.iter().map(|c| c.weight).sum(),
+            points: offsets.len(),
+            cells,
+        }
+    }
+
+    fn sums(&self, cell: &Cell, image: &GrayImage32, pose: &Pose) -> CellSums {
+        let s = cell.lanes.sums_at(image, &Affine::of(pose, 0.0, 0.0));
+        let (n, r) = (cell.lanes.len() as f64, f64::from(s.reference));
+        CellSums {
+            n,
+            t: cell.t,
+            tt: cell.tt,
+            i: s.sum + n * r,
+            ii: s.sum_sq + 2.0 * r * s.sum + n * r * r,
+            ti: s.dot + r * cell.t,
+        }
+    }
+
+    /// The template's cells at `pose` in `image`. `None` for a template without structure
+    /// in any cell (nothing to tell a covered cell from a visible one).
+    pub(crate) fn measure(&self, image: &GrayImage32, pose: &Pose) -> Option<CoverageReading> {
+        if self.total_weight <= 0.0 || self.points == 0 {
+            return None;
+        }
+        let mut visible = 0.0f32;
+        let mut together = CellSums::default();
+        for cell in &self.cells {
+            let sums = self.sums(cell, image, pose);
+            let matches = if cell.weight > 0.0 {
+                ((sums.zncc() - CELL_UNRELATED) / (CELL_MATCHES - CELL_UNRELATED)).clamp(0.0, 1.0)
+            } else {
+                1.0
+            };
+            visible += cell.weight * matches;
+            if matches >= 1.0 {
+                together.add(&sums);
+            }
+        }
+        Some(CoverageReading {
+            visible: (visible / self.total_weight).clamp(0.0, 1.0),
+            visible_similarity: together.zncc(),
+            visible_points: (together.n / self.points as f64) as f32,
+        })
+    }
+}
+
+#[cfg(test)]
+mod tests {
+    use super::*;
+
+    /// White noise in [0.2, 0.8] (a hash of the position and the seed).
+    fn textured(width: usize, height: usize, seed: usize) -> GrayImage32 {
+        GrayImage32::from_fn(width, height, |x, y| {
+            let mut h = (x as u64) << 32 ^ (y as u64) << 12 ^ (seed as u64).wrapping_mul(0x9E37);
+            h = (h ^ (h >> 31)).wrapping_mul(0xBF58_476D_1CE4_E5B9);
+            h = (h ^ (h >> 27)).wrapping_mul(0x94D0_49BB_1331_11EB);
+            0.2 + 0.6 * ((h >> 40) as f32 / (1u64 << 24) as f32)
+        })
+    }
+
+    fn at(x: f32, y: f32) -> Pose {
+        Pose {
+            x,
+            y,
+            angle_deg: 0.0,
+            scale_x: 1.0,
+            scale_y: 1.0,
+            score: 0.0,
+            network_score: 0.0,
+        }
+    }
+
+    /// The template pasted into a textured image at (40, 30) with its top-left corner.
+    fn scene(template: &GrayImage32, covered_quarter: bool) -> GrayImage32 {
+        let background = textured(120, 100, 7);
+        GrayImage32::from_fn(120, 100, |x, y| {
+            let (u, v) = (x as i64 - 40, y as i64 - 30);
+            let inside =
+                (0..template.width as i64).contains(&u) && (0..template.height as i64).contains(&v);
+            let hidden = covered_quarter
+                && u >= template.width as i64 / 2
+                && v >= template.height as i64 / 2;
+            if inside && !hidden {
+                template.values[v as usize * template.width + u as usize]
+            } else {
+                background.values[y * 120 + x]
+            }
+        })
+    }
+
+    #[test]
+    fn a_visible_part_is_wholly_visible_and_a_covered_quarter_is_missing() {
+        let template = textured(36, 36, 1);
+        let pose = at(40.0 + 17.5, 30.0 + 17.5);
+        let coverage = Coverage::new(&template);
+        let clean_scene = scene(&template, false);
+        let whole = crate::refine::TemplatePoints::support(&template).score(&clean_scene, &pose);
+        assert!(whole > 0.999, "whole-template ZNCC {whole}");
+        let clean = coverage.measure(&clean_scene, &pose).unwrap();
+        assert!(clean.visible > 0.999, "{clean:?}");
+        assert!(clean.visible_similarity > 0.999, "{clean:?}");
+        assert!((clean.visible_points - 1.0).abs() < 1e-6, "{clean:?}");
+        let covered = coverage.measure(&scene(&template, true), &pose).unwrap();
+        assert!((0.7..0.82).contains(&covered.visible), "{covered:?}");
+        assert!(covered.visible_similarity > 0.999, "{covered:?}");
+        assert!((covered.visible_points - 0.75).abs() < 0.07, "{covered:?}");
+    }
+
+    #[test]
+    fn an_unrelated_patch_is_mostly_not_visible() {
+        let template = textured(36, 36, 1);
+        let coverage = Coverage::new(&template);
+        let elsewhere = textured(120, 100, 99);
+        let reading = coverage.measure(&elsewhere, &at(60.0, 50.0)).unwrap();
+        assert!(reading.visible < 0.3, "{reading:?}");
+    }
+
+    #[test]
+    fn a_flat_template_has_no_coverage() {
+        let flat = GrayImage32::from_fn(20, 20, |_, _| 0.5);
+        assert!(
+            Coverage::new(&flat)
+                .measure(&textured(50, 50, 3), &at(25.0, 25.0))
+                .is_none()
+        );
+    }
+}
