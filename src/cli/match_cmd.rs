@@ -260,13 +260,16 @@ fn run_pairs(
     Ok(())
 }
 
+/// One batch line's answer: its poses as printed, whether it timed out, and the milliseconds.
+type LineAnswer = (Vec<Value>, bool, f64);
+
 fn match_line(
     matcher: Option<&Matcher>,
     line: &str,
     base: &Path,
     options: &ValidOptions,
     templates: &mut HashMap<(PathBuf, Option<PathBuf>), EncodedTemplate>,
-) -> (Value, Result<(Vec<Value>, bool, f64), String>) {
+) -> (Value, Result<LineAnswer, String>) {
     let record: Value = match serde_json::from_str(line) {
         Ok(v) => v,
         Err(e) => return (Value::Null, Err(format!("not valid JSON: {e}"))),

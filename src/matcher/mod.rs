@@ -323,7 +323,13 @@ impl Matcher {
             match prepare(
                 index,
                 job,
-                self.max_whole_pixels(),
+                // A job with a time limit runs in tiles of at most TIMED_TILE_PIXELS, so the
+                // limit is checked between tiles rather than after a whole frame.
+                if job.answer_by.is_some() {
+                    self.max_whole_pixels().min(plan::TIMED_TILE_PIXELS)
+                } else {
+                    self.max_whole_pixels()
+                },
                 self.grid_scale,
                 self.convention,
             ) {
@@ -343,7 +349,14 @@ impl Matcher {
             // tiles go one at a time, small images together. How many jobs come at once is the
             // caller's choice (the service's `max_batch_size`), not limited again here.
             let pixels = group[0].width * group[0].height;
-            let per_batch = (self.max_whole_pixels() / pixels).max(1);
+            // A job with a time limit runs its pieces one at a time, so that the limit is
+            // checked between tiles (a batch of tiles costs no less than the tiles one by one
+            // on the CPU; docs/speed.md).
+            let per_batch = if group.iter().any(|p| jobs[p.job].answer_by.is_some()) {
+                1
+            } else {
+                (self.max_whole_pixels() / pixels).max(1)
+            };
             for batch in group.chunks_mut(per_batch) {
                 // A job past its time limit gets no more network pieces (one piece is the
                 // granularity: a 2048 frame's tile, docs/service.md "Time limits").

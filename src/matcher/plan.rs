@@ -30,6 +30,11 @@ pub const TILE_MARGIN: usize = 64;
 pub const MAX_WHOLE_PIXELS_BF16: usize = 2048 * 2048;
 /// The same for f32 products (1448x1448): about 0.2 KB per network pixel, near 420 MB.
 pub const MAX_WHOLE_PIXELS_F32: usize = 1448 * 1448;
+/// Largest network piece of a search with a time limit (`MatchOptions::timeout_ms`): the
+/// limit is checked between pieces, so this bounds how late an answer may come. A 2048x2048
+/// frame is then 4 tiles instead of one whole input (their overlap costs about 15 % more
+/// network time).
+pub const TIMED_TILE_PIXELS: usize = 1024 * 1024;
 
 /// Inputs up to this many network pixels run whole; larger ones run as tiles. A whole input
 /// costs the fewest network pixels (tiles overlap by `2 x` [`TILE_MARGIN`]: a 1930² input

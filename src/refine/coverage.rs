@@ -107,15 +107,17 @@ impl Coverage {
             let row = ((v + cy + 0.5) / template.height as f32 * CELLS_PER_SIDE as f32) as usize;
             row.min(CELLS_PER_SIDE - 1) * CELLS_PER_SIDE + col.min(CELLS_PER_SIDE - 1)
         };
-        let mut members: Vec<(Vec<(f32, f32)>, Vec<f32>)> =
-            vec![Default::default(); CELLS_PER_SIDE * CELLS_PER_SIDE];
+        // Each cell's offsets and centred values.
+        let mut offsets_of = vec![Vec::new(); CELLS_PER_SIDE * CELLS_PER_SIDE];
+        let mut values_of: Vec<Vec<f32>> = vec![Vec::new(); CELLS_PER_SIDE * CELLS_PER_SIDE];
         for (&offset, &value) in offsets.iter().zip(&values) {
-            let cell = &mut members[cell_of(offset)];
-            cell.0.push(offset);
-            cell.1.push(value - mean);
+            let cell = cell_of(offset);
+            offsets_of[cell].push(offset);
+            values_of[cell].push(value - mean);
         }
-        let cells: Vec<Cell> = members
+        let cells: Vec<Cell> = offsets_of
             .into_iter()
+            .zip(values_of)
             .filter(|(offsets, _)| !offsets.is_empty())
             .map(|(offsets, values)| {
                 let n = values.len() as f64;
