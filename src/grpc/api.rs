@@ -17,7 +17,7 @@ use super::convert::{
 };
 use super::proto::{self, pose_matcher_server::PoseMatcher};
 use crate::engine::{Engine, EngineError, Metrics, quoted};
-use crate::imaging::{ImageLimits, RgbImage32};
+use crate::imaging::RgbImage32;
 use crate::matcher::{MatchOptions, TEMPLATE_LIMITS, TemplateMask, search_limits};
 
 pub struct Api {
@@ -46,7 +46,8 @@ impl ImageDecoder {
 
     /// A search image, within `max_image_pixels`.
     async fn search_image(&self, image: Option<proto::Image>) -> Result<RgbImage32, EngineError> {
-        self.decode(image, "image", search_limits(self.max_image_pixels))
+        let limits = search_limits(self.max_image_pixels);
+        self.decode(move || image_from_proto(image, "image", limits))
             .await
     }
 
@@ -57,30 +58,22 @@ impl ImageDecoder {
         image: Option<proto::Image>,
         mask: Option<proto::Image>,
     ) -> Result<(RgbImage32, Option<TemplateMask>), EngineError> {
-        let _permit = self
-            .permits
-            .acquire()
+        self.decode(move || template_from_proto(image, mask, TEMPLATE_LIMITS))
             .await
-            .map_err(|e| EngineError::Internal(format!("decode permits closed: {e}")))?;
-        tokio::task::spawn_blocking(move || template_from_proto(image, mask, TEMPLATE_LIMITS))
-            .await
-            .map_err(|e| EngineError::Internal(format!("image decoding failed: {e}")))?
     }
 
-    /// Decodes on a blocking thread (a 40 MP PNG takes long enough to stall the runtime) once
-    /// a decode permit is free.
-    async fn decode(
+    /// Runs `decoding` on a blocking thread (a 40 MP PNG takes long enough to stall the
+    /// runtime) once a decode permit is free.
+    async fn decode<T: Send + 'static>(
         &self,
-        image: Option<proto::Image>,
-        what: &'static str,
-        limits: ImageLimits,
-    ) -> Result<RgbImage32, EngineError> {
+        decoding: impl FnOnce() -> Result<T, EngineError> + Send + 'static,
+    ) -> Result<T, EngineError> {
         let _permit = self
             .permits
             .acquire()
             .await
             .map_err(|e| EngineError::Internal(format!("decode permits closed: {e}")))?;
-        tokio::task::spawn_blocking(move || image_from_proto(image, what, limits))
+        tokio::task::spawn_blocking(decoding)
             .await
             .map_err(|e| EngineError::Internal(format!("image decoding failed: {e}")))?
     }
