@@ -67,6 +67,85 @@ impl Pose {
     }
 }
 
+/// A template's reference point (Halcon's `set_shape_model_origin`, Matrox's reference
+/// origin): where a robot grips or a PLC measures, in template pixel coordinates (column, row;
+/// the centre of the top-left pixel is (0, 0)). Each pose reports where it lands (`origin_x`,
+/// `origin_y`); `x`, `y` stay the template centre, the public contract. It may lie outside the
+/// template (a gripping point beside the part), up to [`TemplateOrigin::REACH`] template sizes
+/// beyond its edges.
+#[derive(Debug, Clone, Copy, PartialEq, Serialize, Deserialize)]
+pub struct TemplateOrigin {
+    pub x: f32,
+    pub y: f32,
+}
+
+impl TemplateOrigin {
+    /// How far outside the template, in template widths (heights), an origin may lie.
+    pub const REACH: f32 = 3.0;
+
+    /// Checks that `(x, y)` is finite and within [`Self::REACH`] of a `width x height` template.
+    pub fn new(x: f32, y: f32, width: u32, height: u32) -> Result<Self, String> {
+        let (w, h) = (width as f32, height as f32);
+        let within = |v: f32, size: f32| {
+            v.is_finite() && v >= -Self::REACH * size - 0.5 && v <= (Self::REACH + 1.0) * size - 0.5
+        };
+        if within(x, w) && within(y, h) {
+            Ok(Self { x, y })
+        } else {
+            Err(format!(
+                "the template origin ({x}, {y}) is not a point of the {width}x{height} template or near it: give template pixel coordinates (column, row; the top-left pixel's centre is 0,0), at most {} template sizes outside it",
+                Self::REACH
+            ))
+        }
+    }
+
+    /// The template centre, where a template without an origin is measured from.
+    pub fn centre(width: u32, height: u32) -> Self {
+        Self {
+            x: (width as f32 - 1.0) / 2.0,
+            y: (height as f32 - 1.0) / 2.0,
+        }
+    }
+}
+
+/// A registered template's geometry as poses are reported against it: its size (the reference
+/// of the scales and of [`Pose::transform`]) and its reference point.
+#[derive(Debug, Clone, Copy, PartialEq)]
+pub struct TemplateFrame {
+    pub width: u32,
+    pub height: u32,
+    /// The registered origin, or `None` for the template centre.
+    pub origin: Option<TemplateOrigin>,
+}
+
+impl TemplateFrame {
+    pub fn new(width: u32, height: u32, origin: Option<TemplateOrigin>) -> Self {
+        Self {
+            width,
+            height,
+            origin,
+        }
+    }
+
+    /// The reference point: the registered origin or the centre.
+    pub fn reference_point(&self) -> TemplateOrigin {
+        self.origin
+            .unwrap_or_else(|| TemplateOrigin::centre(self.width, self.height))
+    }
+
+    /// Where the reference point lands in the image under `pose`.
+    pub fn origin_in_image(&self, pose: &Pose) -> (f32, f32) {
+        let centre = TemplateOrigin::centre(self.width, self.height);
+        let point = self.reference_point();
+        pose.map_point(point.x - centre.x, point.y - centre.y)
+    }
+
+    /// [`Pose::transform`] for this template.
+    pub fn transform(&self, pose: &Pose) -> [f32; 6] {
+        pose.transform(self.width as f32, self.height as f32)
+    }
+}
+
 /// Wraps any angle in degrees into (−180, 180].
 pub fn wrap_angle_deg(angle: f32) -> f32 {
     let mut a = angle % 360.0;

@@ -21,6 +21,7 @@ pub mod model;
 pub mod refine;
 pub mod synth;
 pub mod train;
+pub mod world;
 
 /// What unit tests share.
 #[cfg(test)]

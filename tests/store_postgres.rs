@@ -435,3 +435,109 @@ async fn a_database_that_refuses_fails_the_start_with_its_message() {
     assert!(!message.contains("unreachable"), "{message}");
     println!("{message}");
 }
+
+/// Origins and calibrations live in the database like templates: what one replica registers,
+/// the other reads, and a replaced origin reaches the other replica's cache (the origin is part
+/// of the content hash the change notification carries).
+#[tokio::test(flavor = "multi_thread", worker_threads = 2)]
+async fn origins_and_calibrations_are_shared_by_replicas() {
+    let Some(cluster) = common::postgres_cluster() else {
+        return;
+    };
+    let (_a, mut on_a) = replica(&cluster, &[]).await;
+    let (_b, mut on_b) = replica(&cluster, &[]).await;
+    let placed = |x: f32, replace: bool| proto::RegisterTemplateRequest {
+        origin_x: Some(x),
+        origin_y: Some(0.0),
+        replace,
+        ..register_request("part", template_png(1))
+    };
+    let first = on_a
+        .register_template(placed(0.0, false))
+        .await
+        .unwrap()
+        .into_inner();
+    let frame = png(&scene(128, 128, 1));
+    let origin_x = |poses: &[proto::Pose]| (poses[0].origin_x, poses[0].transform[2]);
+    let seen = poses(&mut on_b, "part", &frame).await.unwrap();
+    let (origin, corner) = origin_x(&seen);
+    assert!(
+        (origin - corner).abs() < 1e-3,
+        "origin at template pixel (0, 0)"
+    );
+    // A new origin alone is a replacement (ALREADY_EXISTS without replace) and B follows it.
+    let clash = on_a
+        .register_template(placed(35.0, false))
+        .await
+        .unwrap_err();
+    assert_eq!(clash.code(), Code::AlreadyExists);
+    let second = on_a
+        .register_template(placed(35.0, true))
+        .await
+        .unwrap()
+        .into_inner();
+    assert_ne!(second.content_sha256, first.content_sha256);
+    assert_eq!((second.origin_x, second.version), (Some(35.0), 2));
+    let followed = within(Duration::from_secs(5), || {
+        let mut on_b = on_b.clone();
+        let frame = frame.clone();
+        async move {
+            let seen = poses(&mut on_b, "part", &frame).await.unwrap();
+            let (origin, corner) = origin_x(&seen);
+            (origin - corner).abs() > 1.0
+        }
+    })
+    .await;
+    assert!(followed.is_some(), "B still reports the old origin");
+
+    let point = |image: [f64; 2], world: [f64; 2]| proto::CalibrationPoint {
+        image_x: image[0],
+        image_y: image[1],
+        world_x: world[0],
+        world_y: world[1],
+    };
+    let registered = on_a
+        .register_calibration(proto::RegisterCalibrationRequest {
+            calibration_id: "cam-1".into(),
+            points: vec![
+                point([0.0, 0.0], [0.0, 0.0]),
+                point([100.0, 0.0], [10.0, 0.0]),
+                point([0.0, 100.0], [0.0, 10.0]),
+                point([100.0, 100.0], [10.0, 10.0]),
+            ],
+            unit: "mm".into(),
+            replace: false,
+        })
+        .await
+        .unwrap()
+        .into_inner();
+    let read = on_b
+        .get_calibration(proto::GetCalibrationRequest {
+            calibration_id: "cam-1".into(),
+        })
+        .await
+        .unwrap()
+        .into_inner();
+    assert_eq!(read, registered);
+    let mut request = probe("part", &frame);
+    request.options.as_mut().unwrap().calibration_id = "cam-1".into();
+    let answer = on_b.r#match(request).await.unwrap().into_inner();
+    let pose = &answer.poses[0];
+    assert_eq!(answer.world_unit, "mm");
+    assert!((pose.world_x.unwrap() - pose.origin_x as f64 / 10.0).abs() < 1e-3);
+    let deleted = on_b
+        .delete_calibration(proto::DeleteCalibrationRequest {
+            calibration_id: "cam-1".into(),
+        })
+        .await
+        .unwrap()
+        .into_inner();
+    assert!(deleted.deleted);
+    let gone = on_a
+        .get_calibration(proto::GetCalibrationRequest {
+            calibration_id: "cam-1".into(),
+        })
+        .await
+        .unwrap_err();
+    assert_eq!(gone.code(), Code::NotFound);
+}

@@ -10,11 +10,13 @@ use clap::Args;
 use serde_json::{Value, json};
 
 use super::{CliError, ModelArgs, load_model, read_image, read_template};
+use crate::geometry::{TemplateFrame, TemplateOrigin};
 use crate::imaging::{GrayImage32, RgbImage32};
 use crate::matcher::{
     AngleRange, EncodedTemplate, MatchOptions, Matcher, Method, ScaleRange, TemplateMask,
     ValidOptions,
 };
+use crate::world::WorldCalibration;
 
 #[derive(Args, Debug)]
 pub struct MatchArgs {
@@ -26,11 +28,22 @@ pub struct MatchArgs {
     /// refinement (a date code, a serial number), any other value is used.
     #[arg(long, requires = "template")]
     pub template_mask: Option<PathBuf>,
+    /// The template's reference point X,Y in template pixels (column, row; the top-left
+    /// pixel's centre is 0,0): each pose reports where it lands (`origin_x`, `origin_y`).
+    /// Default: the template centre.
+    #[arg(long, requires = "template", value_parser = parse_origin, allow_hyphen_values = true)]
+    pub template_origin: Option<(f32, f32)>,
+    /// Image-to-world calibration, JSON `{"points": [{"image": [x, y], "world": [X, Y]}, ...],
+    /// "unit": "mm"}` (3 points: affine; 4 or more: homography): each pose then also carries
+    /// `world_x`, `world_y` (its reference point) and `world_angle_deg`.
+    #[arg(long)]
+    pub calibration: Option<PathBuf>,
     /// Search image.
     #[arg(long, required_unless_present = "pairs", conflicts_with = "pairs")]
     pub image: Option<PathBuf>,
     /// Batch mode: JSONL with one `{"id", "template", "image"[, "template_mask",
-    /// "max_instances"]}` per line; relative paths are relative to this file's folder.
+    /// "template_origin": [x, y], "max_instances"]}` per line; relative paths are relative to
+    /// this file's folder.
     #[arg(long, requires = "out")]
     pub pairs: Option<PathBuf>,
     /// Batch mode output: one `{"id", "poses", "timed_out", "ms"}` (or `{"id", "error"}`) per
@@ -84,6 +97,10 @@ fn parse_pair(s: &str, what: &str) -> Result<(f32, f32), String> {
     }
 }
 
+fn parse_origin(s: &str) -> Result<(f32, f32), String> {
+    parse_pair(s, "template origin")
+}
+
 fn parse_angle_range(s: &str) -> Result<AngleRange, String> {
     let (a, b) = parse_pair(s, "angle range")?;
     AngleRange::from_bounds(a, b)
@@ -115,15 +132,49 @@ impl MatchArgs {
     }
 }
 
+/// Reads and fits `--calibration`.
+fn read_calibration(path: &Path) -> Result<WorldCalibration, CliError> {
+    let text = std::fs::read_to_string(path).map_err(|e| CliError::io(path, e))?;
+    WorldCalibration::from_json(&text)
+        .map_err(|e| CliError::Usage(format!("--calibration {}: {e}", path.display())))
+}
+
+/// What the answer says about the calibration used: its model, unit and how well the points
+/// agreed.
+fn calibration_json(calibration: &WorldCalibration) -> Value {
+    json!({
+        "model": calibration.model(),
+        "unit": calibration.unit(),
+        "rms_residual": calibration.rms_residual(),
+    })
+}
+
+fn origin_of(
+    template: &RgbImage32,
+    origin: Option<(f32, f32)>,
+) -> Result<Option<TemplateOrigin>, String> {
+    origin
+        .map(|(x, y)| TemplateOrigin::new(x, y, template.width, template.height))
+        .transpose()
+}
+
 pub fn run(args: MatchArgs) -> Result<(), CliError> {
     let options = args.options()?;
+    let calibration = args
+        .calibration
+        .as_deref()
+        .map(read_calibration)
+        .transpose()?;
     // Read inputs before loading the model so that bad files fail fast.
     if let (Some(pairs), Some(out)) = (&args.pairs, &args.out) {
         let matcher = match args.method {
             Method::Tdcm => Some(load_model(&args.model)?),
             Method::Ncc => None,
         };
-        return run_pairs(matcher.as_ref(), pairs, out, &options);
+        if let Some(calibration) = &calibration {
+            eprintln!("calibration: {}", calibration_json(calibration));
+        }
+        return run_pairs(matcher.as_ref(), pairs, out, &options, calibration.as_ref());
     }
     let (Some(template_path), Some(image_path)) = (&args.template, &args.image) else {
         return Err(CliError::Usage(
@@ -131,6 +182,9 @@ pub fn run(args: MatchArgs) -> Result<(), CliError> {
         ));
     };
     let (template, mask) = read_template(template_path, args.template_mask.as_deref())?;
+    let origin = origin_of(&template, args.template_origin)
+        .map_err(|m| CliError::Usage(format!("--template-origin: {m}")))?;
+    let frame = TemplateFrame::new(template.width, template.height, origin);
     let image = read_image(image_path)?;
     let (poses, timed_out, ms) = if args.method == Method::Ncc {
         let start = Instant::now();
@@ -150,8 +204,8 @@ pub fn run(args: MatchArgs) -> Result<(), CliError> {
     if let Some(overlay) = &args.overlay {
         super::overlay::save_overlay(&image, &poses, template.width, template.height, overlay)?;
     }
-    let poses = poses_json(&poses, template.width, template.height);
-    let answer = json!({
+    let poses = poses_json(&poses, &frame, calibration.as_ref());
+    let mut answer = json!({
         "template": template_path,
         "image": image_path,
         "image_width": image.width,
@@ -160,6 +214,9 @@ pub fn run(args: MatchArgs) -> Result<(), CliError> {
         "timed_out": timed_out,
         "ms": round3(ms),
     });
+    if let Some(calibration) = &calibration {
+        answer["calibration"] = calibration_json(calibration);
+    }
     println!(
         "{}",
         serde_json::to_string_pretty(&answer).expect("JSON of plain values")
@@ -198,14 +255,29 @@ fn ncc_answer(
     ))
 }
 
-/// Poses as the CLI prints them: the pose's fields and its `transform`, the 2x3 matrix from
-/// template pixels to image pixels ([`crate::geometry::Pose::transform`]).
-fn poses_json(poses: &[crate::geometry::Pose], width: u32, height: u32) -> Vec<Value> {
+/// Poses as the CLI prints them: the pose's fields, its `transform` (the 2x3 matrix from
+/// template pixels to image pixels, [`crate::geometry::Pose::transform`]), where the
+/// template's reference point lands (`origin_x`, `origin_y`) and, with a calibration, where
+/// that lies in the world (`world_x`, `world_y`, `world_angle_deg`).
+fn poses_json(
+    poses: &[crate::geometry::Pose],
+    template: &TemplateFrame,
+    calibration: Option<&WorldCalibration>,
+) -> Vec<Value> {
     poses
         .iter()
         .map(|pose| {
             let mut value = serde_json::to_value(pose).expect("a pose is plain numbers");
-            value["transform"] = json!(pose.transform(width as f32, height as f32));
+            value["transform"] = json!(template.transform(pose));
+            let (origin_x, origin_y) = template.origin_in_image(pose);
+            value["origin_x"] = json!(origin_x);
+            value["origin_y"] = json!(origin_y);
+            if let Some(calibration) = calibration {
+                let world = calibration.place(pose, template);
+                value["world_x"] = json!(world.x);
+                value["world_y"] = json!(world.y);
+                value["world_angle_deg"] = json!(world.angle_deg);
+            }
             value
         })
         .collect()
@@ -226,20 +298,21 @@ fn run_pairs(
     pairs: &Path,
     out: &Path,
     options: &ValidOptions,
+    calibration: Option<&WorldCalibration>,
 ) -> Result<(), CliError> {
     let input = File::open(pairs).map_err(|e| CliError::io(pairs, e))?;
     let base = pairs.parent().unwrap_or(Path::new(".")).to_owned();
     let output = File::create(out).map_err(|e| CliError::io(out, e))?;
     let mut output = BufWriter::new(output);
     // Encoded once per (template, mask) pair.
-    let mut templates: HashMap<(PathBuf, Option<PathBuf>), EncodedTemplate> = HashMap::new();
+    let mut templates: HashMap<TemplateKey, EncodedTemplate> = HashMap::new();
     let (mut ok, mut failed) = (0usize, 0usize);
     for (number, line) in BufReader::new(input).lines().enumerate() {
         let line = line.map_err(|e| CliError::io(pairs, e))?;
         if line.trim().is_empty() {
             continue;
         }
-        let (id, result) = match_line(matcher, &line, &base, options, &mut templates);
+        let (id, result) = match_line(matcher, &line, &base, options, calibration, &mut templates);
         let record = match result {
             Ok((poses, timed_out, ms)) => {
                 ok += 1;
@@ -263,12 +336,16 @@ fn run_pairs(
 /// One batch line's answer: its poses as printed, whether it timed out, and the milliseconds.
 type LineAnswer = (Vec<Value>, bool, f64);
 
+/// A batch's templates are encoded once per path, mask path and origin (as its bits).
+type TemplateKey = (PathBuf, Option<PathBuf>, Option<(u32, u32)>);
+
 fn match_line(
     matcher: Option<&Matcher>,
     line: &str,
     base: &Path,
     options: &ValidOptions,
-    templates: &mut HashMap<(PathBuf, Option<PathBuf>), EncodedTemplate>,
+    calibration: Option<&WorldCalibration>,
+    templates: &mut HashMap<TemplateKey, EncodedTemplate>,
 ) -> (Value, Result<LineAnswer, String>) {
     let record: Value = match serde_json::from_str(line) {
         Ok(v) => v,
@@ -289,6 +366,16 @@ fn match_line(
             None | Some(Value::Null) => None,
             Some(_) => Some(path("template_mask")?),
         };
+        let origin = match record.get("template_origin") {
+            None | Some(Value::Null) => None,
+            Some(value) => match value.as_array().map(|a| a.as_slice()) {
+                Some([x, y]) => match (x.as_f64(), y.as_f64()) {
+                    (Some(x), Some(y)) => Some((x as f32, y as f32)),
+                    _ => return Err("`template_origin` must be two numbers [x, y]".into()),
+                },
+                _ => return Err("`template_origin` must be two numbers [x, y]".into()),
+            },
+        };
         let options = match record.get("max_instances") {
             None => options.clone(),
             Some(n) => MatchOptions {
@@ -305,23 +392,29 @@ fn match_line(
             let (template, mask) =
                 read_template(&template_path, mask_path.as_deref()).map_err(|e| e.to_string())?;
             let image = read_image(&image_path).map_err(|e| e.to_string())?;
+            let origin =
+                origin_of(&template, origin).map_err(|m| format!("template_origin: {m}"))?;
+            let frame = TemplateFrame::new(template.width, template.height, origin);
             let start = Instant::now();
             let poses = ncc_answer(&template, mask.as_ref(), &image, &options)
                 .map_err(|e| e.to_string())?;
             let ms = ms_since(start);
-            return Ok((
-                poses_json(&poses, template.width, template.height),
-                false,
-                ms,
-            ));
+            return Ok((poses_json(&poses, &frame, calibration), false, ms));
         };
-        let key = (template_path.clone(), mask_path.clone());
+        let key = (
+            template_path.clone(),
+            mask_path.clone(),
+            origin.map(|(x, y)| (x.to_bits(), y.to_bits())),
+        );
         if !templates.contains_key(&key) {
             let (template, mask) =
                 read_template(&template_path, mask_path.as_deref()).map_err(|e| e.to_string())?;
-            let encoded = matcher
+            let origin =
+                origin_of(&template, origin).map_err(|m| format!("template_origin: {m}"))?;
+            let mut encoded = matcher
                 .encode_masked_template(&template, mask.as_ref())
                 .map_err(|e| format!("{}: {e}", template_path.display()))?;
+            encoded.origin = origin;
             templates.insert(key.clone(), encoded);
         }
         let image = read_image(&image_path).map_err(|e| e.to_string())?;
@@ -330,8 +423,7 @@ fn match_line(
             .match_one(&templates[&key], &image, &options)
             .map_err(|e| e.to_string())?;
         let ms = ms_since(start);
-        let encoded = &templates[&key];
-        let poses = poses_json(&outcome.poses, encoded.width, encoded.height);
+        let poses = poses_json(&outcome.poses, &templates[&key].frame(), calibration);
         Ok((poses, outcome.timed_out, ms))
     })();
     (id, result)

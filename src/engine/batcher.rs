@@ -533,6 +533,7 @@ mod tests {
             gray: Arc::new(GrayImage32::from_rgb(&image(8))),
             reversed_kernel: Tensor::zeros([1, 96, 9, 9], &Device::flex()),
             reversed_gray: Arc::new(GrayImage32::from_rgb(&image(8))),
+            origin: None,
         }
     }
 

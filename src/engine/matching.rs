@@ -9,7 +9,7 @@ use tokio::sync::oneshot;
 
 use super::batcher::{BatchError, MatchWork, SubmitError};
 use super::{Engine, EngineError};
-use crate::geometry::Pose;
+use crate::geometry::{Pose, TemplateFrame};
 use crate::imaging::{GrayImage32, RgbImage32};
 use crate::matcher::{EncodedTemplate, MatchTimings, Method, ValidOptions, classical};
 
@@ -32,8 +32,8 @@ pub struct MatchAnswer {
     pub batch_size: usize,
     /// The options' time limit came first ([`crate::matcher::MatchOutcome::timed_out`]).
     pub timed_out: bool,
-    /// The registered template's width and height (what the poses' scales refer to).
-    pub template_size: (u32, u32),
+    /// The registered template's size (what the poses' scales refer to) and reference point.
+    pub template: TemplateFrame,
 }
 
 impl Engine {
@@ -91,7 +91,7 @@ impl Engine {
         deadline: Option<Instant>,
         answer_by: Option<Instant>,
     ) -> Result<MatchAnswer, EngineError> {
-        let template_size = (template.width, template.height);
+        let frame = template.frame();
         crate::matcher::check_network_budget(
             template.width,
             template.height,
@@ -130,7 +130,7 @@ impl Engine {
             queue_ms: answer.queue_ms,
             batch_size: answer.batch_size,
             timed_out: answer.outcome.timed_out,
-            template_size,
+            template: frame,
         })
     }
 
@@ -143,7 +143,7 @@ impl Engine {
         options: ValidOptions,
         deadline: Option<Instant>,
     ) -> Result<MatchAnswer, EngineError> {
-        let template_size = (template.width, template.height);
+        let frame = template.frame();
         classical::check_work(
             template.width,
             template.height,
@@ -180,7 +180,7 @@ impl Engine {
             queue_ms,
             batch_size: 1,
             timed_out: false,
-            template_size,
+            template: frame,
         })
     }
 }

@@ -7,6 +7,7 @@
 //! codes; every rule about templates, limits and options lives here or below.
 
 pub mod batcher;
+mod calibrations;
 mod matching;
 pub mod metrics;
 mod registry;
@@ -22,7 +23,7 @@ pub use matching::{MatchAnswer, Roi};
 pub use metrics::Metrics;
 pub use registry::{
     DEFAULT_PAGE_SIZE, MAX_LABEL_KEY_BYTES, MAX_LABEL_VALUE_BYTES, MAX_LABELS, MAX_PAGE_SIZE,
-    MAX_TEMPLATE_ID_BYTES,
+    MAX_TEMPLATE_ID_BYTES, RegisteredTemplate,
 };
 use store::{StoreError, StoreEvent, TemplateStore};
 use template_cache::TemplateCache;
@@ -58,6 +59,16 @@ pub enum EngineError {
         quoted(.0)
     )]
     AlreadyExists(String),
+    #[error(
+        "calibration {} is not registered; register it first (RegisterCalibration) or check the ID with ListCalibrations",
+        quoted(.0)
+    )]
+    CalibrationNotFound(String),
+    #[error(
+        "calibration {} is already registered with other points or another unit; pass replace=true to overwrite it or choose another calibration_id",
+        quoted(.0)
+    )]
+    CalibrationExists(String),
     #[error("{0}")]
     ResourceExhausted(String),
     #[error("{0}")]

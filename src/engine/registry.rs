@@ -10,6 +10,7 @@ use super::store::{
     NewTemplate, PutOutcome, TemplateMeta, content_sha256, decode_stored, encode_png16,
 };
 use super::{Engine, EngineError, blocking, quoted};
+use crate::geometry::TemplateOrigin;
 use crate::imaging::RgbImage32;
 use crate::matcher::{EncodedTemplate, TemplateMask};
 
@@ -25,17 +26,21 @@ pub const MAX_PAGE_SIZE: usize = 1000;
 
 impl Engine {
     /// Registers `image` under `template_id` (derived from the content when empty), with the
-    /// `mask` of the pixels it ignores, if any. The same image and mask under the same ID is a
-    /// no-op; a different one needs `replace`. Returns once the template is committed to the
-    /// store.
+    /// `mask` of the pixels it ignores and its reference point `origin`, if any. The same
+    /// image, mask and origin under the same ID is a no-op; a different one needs `replace`.
+    /// Returns once the template is committed to the store.
     pub async fn register(
         &self,
         template_id: &str,
-        image: RgbImage32,
-        mask: Option<TemplateMask>,
+        template: RegisteredTemplate,
         replace: bool,
         labels: BTreeMap<String, String>,
     ) -> Result<TemplateMeta, EngineError> {
+        let RegisteredTemplate {
+            image,
+            mask,
+            origin,
+        } = template;
         check_labels(&labels)?;
         if let Some(mask) = &mask {
             mask.check_fits(image.width, image.height)
@@ -45,7 +50,8 @@ impl Engine {
         let mask = mask.filter(|m| !m.uses_everything());
         let image = Arc::new(image);
         let (hashed, hashed_mask) = (image.clone(), mask.clone());
-        let content = blocking(move || content_sha256(&hashed, hashed_mask.as_ref())).await?;
+        let content =
+            blocking(move || content_sha256(&hashed, hashed_mask.as_ref(), origin)).await?;
         let template_id = if template_id.is_empty() {
             format!("tpl-{}", &content[..16])
         } else {
@@ -63,7 +69,9 @@ impl Engine {
             }
         }
         // Encoding validates the template (size limits) before anything is written.
-        let encoded = Arc::new(self.batcher.encode((*image).clone(), mask.clone()).await?);
+        let mut encoded = self.batcher.encode((*image).clone(), mask.clone()).await?;
+        encoded.origin = origin;
+        let encoded = Arc::new(encoded);
         let stored = image.clone();
         let png = blocking(move || encode_png16(&stored, mask.as_ref())).await?;
         let new = NewTemplate {
@@ -72,6 +80,7 @@ impl Engine {
             height: image.height,
             labels,
             content_sha256: content.clone(),
+            origin,
             png,
         };
         let ticket = self.template_cache.ticket();
@@ -110,42 +119,24 @@ impl Engine {
             .get_with_image(template_id)
             .await?
             .ok_or_else(|| EngineError::NotFound(template_id.to_owned()))?;
-        let (checked, origin, sha) = (
+        let (checked, source, sha, origin) = (
             png.clone(),
             quoted(template_id),
             meta.content_sha256.clone(),
+            meta.origin,
         );
-        let (_, mask) = blocking(move || decode_stored(&checked, &origin, &sha)).await??;
+        let (_, mask) = blocking(move || decode_stored(&checked, &source, &sha, origin)).await??;
         Ok((meta, png, mask))
     }
 
     /// One page of templates in ID order; the token is where the next page starts.
     pub async fn list(
         &self,
-        page_size: usize,
+        asked_page_size: usize,
         page_token: &str,
     ) -> Result<(Vec<TemplateMeta>, String), EngineError> {
-        let page_size = match page_size {
-            0 => DEFAULT_PAGE_SIZE,
-            n if n > MAX_PAGE_SIZE => {
-                return Err(EngineError::InvalidArgument(format!(
-                    "page_size {n} is too large: use at most {MAX_PAGE_SIZE} (0 means {DEFAULT_PAGE_SIZE})"
-                )));
-            }
-            n => n,
-        };
-        let after = if page_token.is_empty() {
-            None
-        } else {
-            let bytes = hex::decode(page_token).map_err(|_| {
-                EngineError::InvalidArgument(
-                    "page_token is not one this server issued; pass next_page_token from the previous response, or empty for the first page".into(),
-                )
-            })?;
-            Some(String::from_utf8(bytes).map_err(|_| {
-                EngineError::InvalidArgument("page_token is not one this server issued".into())
-            })?)
-        };
+        let page_size = page_size(asked_page_size)?;
+        let after = page_after(page_token)?;
         // One more than the page: whether a next page exists.
         let mut page = self.store.list(after.as_deref(), page_size + 1).await?;
         let next = if page.len() > page_size {
@@ -189,10 +180,33 @@ impl Engine {
             .load(template_id)
             .await?
             .ok_or_else(|| EngineError::NotFound(template_id.to_owned()))?;
-        let encoded = Arc::new(self.batcher.encode(image, mask).await?);
+        let mut encoded = self.batcher.encode(image, mask).await?;
+        encoded.origin = meta.origin;
+        let encoded = Arc::new(encoded);
         self.template_cache
             .insert_read(template_id, &meta.content_sha256, encoded.clone(), ticket);
         Ok(encoded)
+    }
+}
+
+/// What a client registers: the template's pixels, the mask of the pixels every score
+/// ignores, and its reference point (checked against the image's size by
+/// [`TemplateOrigin::new`]).
+#[derive(Debug, Clone)]
+pub struct RegisteredTemplate {
+    pub image: RgbImage32,
+    pub mask: Option<TemplateMask>,
+    pub origin: Option<TemplateOrigin>,
+}
+
+impl RegisteredTemplate {
+    /// A template with neither mask nor origin.
+    pub fn plain(image: RgbImage32) -> Self {
+        Self {
+            image,
+            mask: None,
+            origin: None,
+        }
     }
 }
 
@@ -206,18 +220,50 @@ fn refuse_impossible_id(id: &str) -> Result<(), EngineError> {
 }
 
 fn check_template_id(id: &str) -> Result<(), EngineError> {
+    check_id("template_id", id)
+}
+
+/// An ID (of a template or a calibration, named `field`): at most [`MAX_TEMPLATE_ID_BYTES`]
+/// bytes of printable text.
+pub(super) fn check_id(field: &str, id: &str) -> Result<(), EngineError> {
     if id.len() > MAX_TEMPLATE_ID_BYTES {
         return Err(EngineError::InvalidArgument(format!(
-            "template_id is {} bytes long; use at most {MAX_TEMPLATE_ID_BYTES}",
+            "{field} is {} bytes long; use at most {MAX_TEMPLATE_ID_BYTES}",
             id.len()
         )));
     }
     if id.chars().any(char::is_control) {
-        return Err(EngineError::InvalidArgument(
-            "template_id contains control characters; use printable text".into(),
-        ));
+        return Err(EngineError::InvalidArgument(format!(
+            "{field} contains control characters; use printable text"
+        )));
     }
     Ok(())
+}
+
+/// A listing's page size: 0 means [`DEFAULT_PAGE_SIZE`], at most [`MAX_PAGE_SIZE`].
+pub(super) fn page_size(asked: usize) -> Result<usize, EngineError> {
+    match asked {
+        0 => Ok(DEFAULT_PAGE_SIZE),
+        n if n > MAX_PAGE_SIZE => Err(EngineError::InvalidArgument(format!(
+            "page_size {n} is too large: use at most {MAX_PAGE_SIZE} (0 means {DEFAULT_PAGE_SIZE})"
+        ))),
+        n => Ok(n),
+    }
+}
+
+/// Where a listing's page starts: after the ID its token (hex of the last ID) names.
+pub(super) fn page_after(page_token: &str) -> Result<Option<String>, EngineError> {
+    if page_token.is_empty() {
+        return Ok(None);
+    }
+    let bytes = hex::decode(page_token).map_err(|_| {
+        EngineError::InvalidArgument(
+            "page_token is not one this server issued; pass next_page_token from the previous response, or empty for the first page".into(),
+        )
+    })?;
+    String::from_utf8(bytes).map(Some).map_err(|_| {
+        EngineError::InvalidArgument("page_token is not one this server issued".into())
+    })
 }
 
 fn check_labels(labels: &BTreeMap<String, String>) -> Result<(), EngineError> {

@@ -141,6 +141,7 @@ mod tests {
             gray: Arc::new(GrayImage32::from_fn(width as usize, 8, |_, _| 0.0)),
             reversed_kernel: burn::prelude::Tensor::zeros([1, 1, 1, 1], &device),
             reversed_gray: Arc::new(GrayImage32::from_fn(width as usize, 8, |_, _| 1.0)),
+            origin: None,
         })
     }
 

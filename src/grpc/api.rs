@@ -12,11 +12,12 @@ use tonic::{Request, Response, Status, Streaming};
 use tracing::Instrument;
 
 use super::convert::{
-    deadline_of, image_from_proto, options_from_proto, pose_to_proto, status_of,
-    template_from_proto, template_info,
+    RequestedMatch, calibration_info, calibration_spec_from_proto, deadline_of, image_from_proto,
+    options_from_proto, origin_from_proto, pose_to_proto, status_of, template_from_proto,
+    template_info,
 };
 use super::proto::{self, pose_matcher_server::PoseMatcher};
-use crate::engine::{Engine, EngineError, Metrics, quoted};
+use crate::engine::{Engine, EngineError, Metrics, RegisteredTemplate, quoted};
 use crate::imaging::RgbImage32;
 use crate::matcher::{MatchOptions, TEMPLATE_LIMITS, TemplateMask, search_limits};
 
@@ -165,7 +166,16 @@ async fn match_request(
                 "template_id is empty; give the ID of a registered template".into(),
             ));
         }
-        let (options, roi) = options_from_proto(request.options, defaults)?;
+        let RequestedMatch {
+            options,
+            roi,
+            calibration_id,
+        } = options_from_proto(request.options, defaults)?;
+        // An unknown calibration is refused before the image is decoded.
+        let calibration = match &calibration_id {
+            Some(id) => Some(engine.calibration(id).await?.1),
+            None => None,
+        };
         // A full queue refuses before the image costs any memory.
         engine.admit_match()?;
         let image = decoder.search_image(request.image).await?;
@@ -201,8 +211,12 @@ async fn match_request(
             poses: answer
                 .poses
                 .iter()
-                .map(|pose| pose_to_proto(pose, answer.template_size))
+                .map(|pose| pose_to_proto(pose, &answer.template, calibration.as_ref()))
                 .collect(),
+            world_unit: calibration
+                .as_ref()
+                .map(|c| c.unit().to_owned())
+                .unwrap_or_default(),
             image_width: width,
             image_height: height,
             timings: Some(proto::Timings {
@@ -250,9 +264,21 @@ impl PoseMatcher for Api {
                 .template_and_mask(request.image, request.mask)
                 .await
                 .map_err(status_of)?;
+            let origin = origin_from_proto(
+                request.origin_x,
+                request.origin_y,
+                image.width,
+                image.height,
+            )
+            .map_err(status_of)?;
             let labels = request.labels.into_iter().collect();
+            let template = RegisteredTemplate {
+                image,
+                mask,
+                origin,
+            };
             engine
-                .register(&request.template_id, image, mask, request.replace, labels)
+                .register(&request.template_id, template, request.replace, labels)
                 .await
                 .map(|meta| Response::new(template_info(meta)))
                 .map_err(status_of)
@@ -364,6 +390,99 @@ impl PoseMatcher for Api {
         .await
         .map(Response::new);
         span.in_scope(|| self.record("Match", received, &result));
+        result
+    }
+
+    async fn register_calibration(
+        &self,
+        request: Request<proto::RegisterCalibrationRequest>,
+    ) -> Result<Response<proto::CalibrationInfo>, Status> {
+        let started = Instant::now();
+        let request = request.into_inner();
+        let result = async {
+            let engine = self.engine()?;
+            let spec = calibration_spec_from_proto(&request.points, &request.unit);
+            engine
+                .register_calibration(&request.calibration_id, spec, request.replace)
+                .await
+                .map(|(record, fitted)| Response::new(calibration_info(record, &fitted)))
+                .map_err(status_of)
+        }
+        .await;
+        self.record("RegisterCalibration", started, &result);
+        result
+    }
+
+    async fn get_calibration(
+        &self,
+        request: Request<proto::GetCalibrationRequest>,
+    ) -> Result<Response<proto::CalibrationInfo>, Status> {
+        let started = Instant::now();
+        let result = async {
+            let engine = self.engine()?;
+            engine
+                .calibration(&request.get_ref().calibration_id)
+                .await
+                .map(|(record, fitted)| Response::new(calibration_info(record, &fitted)))
+                .map_err(status_of)
+        }
+        .await;
+        self.record("GetCalibration", started, &result);
+        result
+    }
+
+    async fn list_calibrations(
+        &self,
+        request: Request<proto::ListCalibrationsRequest>,
+    ) -> Result<Response<proto::ListCalibrationsResponse>, Status> {
+        let started = Instant::now();
+        let request = request.into_inner();
+        let result = async {
+            let engine = self.engine()?;
+            let (page, next_page_token) = engine
+                .list_calibrations(request.page_size as usize, &request.page_token)
+                .await
+                .map_err(status_of)?;
+            let calibrations = page
+                .into_iter()
+                .map(|record| {
+                    // Stored calibrations were fitted when registered; one that no longer fits
+                    // is reported with what is stored and no model.
+                    match crate::world::WorldCalibration::fit(record.spec.clone()) {
+                        Ok(fitted) => calibration_info(record, &fitted),
+                        Err(_) => proto::CalibrationInfo {
+                            calibration_id: record.calibration_id,
+                            unit: record.spec.unit,
+                            ..Default::default()
+                        },
+                    }
+                })
+                .collect();
+            Ok(Response::new(proto::ListCalibrationsResponse {
+                calibrations,
+                next_page_token,
+            }))
+        }
+        .await;
+        self.record("ListCalibrations", started, &result);
+        result
+    }
+
+    async fn delete_calibration(
+        &self,
+        request: Request<proto::DeleteCalibrationRequest>,
+    ) -> Result<Response<proto::DeleteCalibrationResponse>, Status> {
+        let started = Instant::now();
+        let result = async {
+            let engine = self.engine()?;
+            engine
+                .delete_calibration(&request.get_ref().calibration_id)
+                .await
+                .map(|deleted| Response::new(proto::DeleteCalibrationResponse { deleted }))
+                .map_err(status_of)
+        }
+        .await;
+        self.record("DeleteCalibration", started, &result);
         result
     }
 

@@ -7,13 +7,14 @@ use std::time::{Duration, Instant};
 use tonic::Status;
 
 use super::proto;
-use crate::engine::store::{StoreError, TemplateMeta};
+use crate::engine::store::{CalibrationRecord, StoreError, TemplateMeta};
 use crate::engine::{EngineError, Roi};
-use crate::geometry::Pose;
+use crate::geometry::{Pose, TemplateFrame, TemplateOrigin};
 use crate::imaging::{DecodeError, ImageLimits, RgbImage32, decode_image_and_opacity};
 use crate::matcher::{
     AngleRange, MaskError, MatchOptions, Method, Polarity, ScaleRange, TemplateMask, ValidOptions,
 };
+use crate::world::{CalibrationPoint, CalibrationSpec, WorldCalibration, WorldModel};
 
 /// The one mapping from engine errors to gRPC status codes. Failures of ours (store, internal)
 /// are logged in full and answered without server paths or details.
@@ -26,8 +27,12 @@ pub fn status_of(error: EngineError) -> Status {
         EngineError::Unavailable(_) | EngineError::Store(StoreError::Unavailable(_)) => {
             Status::unavailable(message)
         }
-        EngineError::NotFound(_) => Status::not_found(message),
-        EngineError::AlreadyExists(_) => Status::already_exists(message),
+        EngineError::NotFound(_) | EngineError::CalibrationNotFound(_) => {
+            Status::not_found(message)
+        }
+        EngineError::AlreadyExists(_) | EngineError::CalibrationExists(_) => {
+            Status::already_exists(message)
+        }
         EngineError::ResourceExhausted(_) | EngineError::Store(StoreError::Full(_)) => {
             Status::resource_exhausted(message)
         }
@@ -171,10 +176,19 @@ fn raw_to_rgb(
 /// Options with `defaults` (the service's settings) for zero values; anything out of range is
 /// an error that names the field. Every field of the message is taken apart here by name, so a
 /// field added to the proto does not compile until it is handled.
+/// A request's options as the engine takes them: the matcher's options, the region searched
+/// and the calibration the poses are placed in the world with.
+#[derive(Debug)]
+pub struct RequestedMatch {
+    pub options: ValidOptions,
+    pub roi: Option<Roi>,
+    pub calibration_id: Option<String>,
+}
+
 pub fn options_from_proto(
     options: Option<proto::MatchOptions>,
     defaults: &MatchOptions,
-) -> Result<(ValidOptions, Option<Roi>), EngineError> {
+) -> Result<RequestedMatch, EngineError> {
     let proto::MatchOptions {
         max_instances,
         min_score,
@@ -191,6 +205,7 @@ pub fn options_from_proto(
         no_classical_fallback,
         polarity,
         timeout_ms,
+        calibration_id,
     } = options.unwrap_or_default();
     let invalid = |m: String| Err(EngineError::InvalidArgument(m));
     let finite = [
@@ -288,15 +303,29 @@ pub fn options_from_proto(
             height: r.height,
         })
     });
-    Ok((options, roi))
+    Ok(RequestedMatch {
+        options,
+        roi,
+        calibration_id: (!calibration_id.is_empty()).then_some(calibration_id),
+    })
 }
 
-/// A pose of a `template_width x template_height` template, with its transform.
-pub fn pose_to_proto(pose: &Pose, (template_width, template_height): (u32, u32)) -> proto::Pose {
+/// A pose of `template`, with its transform, where the template's reference point lands and,
+/// with a calibration, where that lies in the world.
+pub fn pose_to_proto(
+    pose: &Pose,
+    template: &TemplateFrame,
+    calibration: Option<&WorldCalibration>,
+) -> proto::Pose {
+    let (origin_x, origin_y) = template.origin_in_image(pose);
+    let world = calibration.map(|c| c.place(pose, template));
     proto::Pose {
-        transform: pose
-            .transform(template_width as f32, template_height as f32)
-            .to_vec(),
+        transform: template.transform(pose).to_vec(),
+        origin_x,
+        origin_y,
+        world_x: world.map(|w| w.x),
+        world_y: world.map(|w| w.y),
+        world_angle_deg: world.map(|w| w.angle_deg),
         x: pose.x,
         y: pose.y,
         angle_deg: pose.angle_deg,
@@ -304,6 +333,70 @@ pub fn pose_to_proto(pose: &Pose, (template_width, template_height): (u32, u32))
         scale_y: pose.scale_y,
         score: pose.score,
         network_score: pose.network_score,
+    }
+}
+
+/// A registration's origin: both coordinates or neither, checked against the template's size.
+pub fn origin_from_proto(
+    x: Option<f32>,
+    y: Option<f32>,
+    width: u32,
+    height: u32,
+) -> Result<Option<TemplateOrigin>, EngineError> {
+    match (x, y) {
+        (None, None) => Ok(None),
+        (Some(x), Some(y)) => TemplateOrigin::new(x, y, width, height)
+            .map(Some)
+            .map_err(|m| EngineError::InvalidArgument(format!("origin_x/origin_y: {m}"))),
+        _ => Err(EngineError::InvalidArgument(
+            "origin_x/origin_y: give both (template pixel column and row) or neither (the template centre)".into(),
+        )),
+    }
+}
+
+/// The points and unit as sent; [`crate::world::WorldCalibration::fit`] checks them.
+pub fn calibration_spec_from_proto(
+    points: &[proto::CalibrationPoint],
+    unit: &str,
+) -> CalibrationSpec {
+    CalibrationSpec {
+        points: points
+            .iter()
+            .map(|p| CalibrationPoint {
+                image: [p.image_x, p.image_y],
+                world: [p.world_x, p.world_y],
+            })
+            .collect(),
+        unit: unit.to_owned(),
+    }
+}
+
+pub fn calibration_info(
+    record: CalibrationRecord,
+    fitted: &WorldCalibration,
+) -> proto::CalibrationInfo {
+    proto::CalibrationInfo {
+        calibration_id: record.calibration_id,
+        points: record
+            .spec
+            .points
+            .iter()
+            .map(|p| proto::CalibrationPoint {
+                image_x: p.image[0],
+                image_y: p.image[1],
+                world_x: p.world[0],
+                world_y: p.world[1],
+            })
+            .collect(),
+        unit: record.spec.unit,
+        model: match fitted.model() {
+            WorldModel::Affine => proto::calibration_info::Model::Affine,
+            WorldModel::Homography => proto::calibration_info::Model::Homography,
+        } as i32,
+        rms_residual: fitted.rms_residual(),
+        created_unix_ms: record.created_unix_ms,
+        updated_unix_ms: record.updated_unix_ms,
+        version: record.version,
     }
 }
 
@@ -317,6 +410,8 @@ pub fn template_info(meta: TemplateMeta) -> proto::TemplateInfo {
         created_unix_ms: meta.created_unix_ms,
         updated_unix_ms: meta.updated_unix_ms,
         version: meta.version,
+        origin_x: meta.origin.map(|o| o.x),
+        origin_y: meta.origin.map(|o| o.y),
         image: None,
         mask: None,
     }
@@ -448,7 +543,9 @@ mod tests {
 
     #[test]
     fn zero_options_are_defaults_and_absurd_ones_are_refused() {
-        let (o, roi) = options_from_proto(None, &MatchOptions::default()).unwrap();
+        let RequestedMatch {
+            options: o, roi, ..
+        } = options_from_proto(None, &MatchOptions::default()).unwrap();
         assert_eq!(o, ValidOptions::default());
         assert!(roi.is_none());
         let bad = |o: proto::MatchOptions| {
@@ -520,7 +617,7 @@ mod tests {
                 polarity: requested,
                 ..Default::default()
             };
-            options_from_proto(Some(request), &defaults).map(|(options, _)| options.polarity)
+            options_from_proto(Some(request), &defaults).map(|r| r.options.polarity)
         };
         assert_eq!(polarity(0, Polarity::Same).unwrap(), Polarity::Same);
         assert_eq!(polarity(0, Polarity::Either).unwrap(), Polarity::Either);
@@ -542,7 +639,9 @@ mod tests {
                 no_classical_fallback,
                 ..Default::default()
             };
-            let (options, _) = options_from_proto(Some(request), &defaults).unwrap();
+            let options = options_from_proto(Some(request), &defaults)
+                .unwrap()
+                .options;
             options.classical_fallback
         };
         assert!(fallback(false, true));

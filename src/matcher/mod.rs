@@ -28,7 +28,7 @@ use std::time::Instant;
 
 use burn::prelude::*;
 
-use crate::geometry::Pose;
+use crate::geometry::{Pose, TemplateFrame, TemplateOrigin};
 use crate::imaging::GrayImage32;
 use crate::imaging::{InputConvention, RgbImage32, resize_rgb, to_network_input};
 use crate::model::{InferenceNetwork, PoseHeads, Precision, PrecisionError, TEMPLATE_GRID, Tdcm};
@@ -59,9 +59,17 @@ pub struct EncodedTemplate {
     /// [`Polarity::Reversed`] parts uses. Encoded together with the template, in one batch.
     pub reversed_kernel: Tensor<4>,
     pub reversed_gray: Arc<GrayImage32>,
+    /// The reference point registered with the template (`None`: its centre). The search
+    /// never uses it; answers report where it lands ([`TemplateFrame`]).
+    pub origin: Option<TemplateOrigin>,
 }
 
 impl EncodedTemplate {
+    /// What poses of this template are reported against.
+    pub fn frame(&self) -> TemplateFrame {
+        TemplateFrame::new(self.width, self.height, self.origin)
+    }
+
     /// The kernels that look for parts of `contrast`.
     pub fn kernel_for(&self, contrast: Contrast) -> &Tensor<4> {
         match contrast {
@@ -266,6 +274,7 @@ impl Matcher {
             gray: Arc::new(gray),
             reversed_kernel,
             reversed_gray: Arc::new(reversed_gray),
+            origin: None,
         })
     }
 

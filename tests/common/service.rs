@@ -105,6 +105,8 @@ pub fn register_request(id: &str, image: Vec<u8>) -> proto::RegisterTemplateRequ
         replace: false,
         labels: HashMap::from([("line".to_string(), "4".to_string())]),
         mask: None,
+        origin_x: None,
+        origin_y: None,
     }
 }
 

@@ -475,3 +475,264 @@ async fn masks_are_checked_stored_and_returned_and_new_options_are_validated() {
     }
     drop(server);
 }
+
+#[tokio::test(flavor = "multi_thread", worker_threads = 2)]
+async fn origins_and_calibrations_place_poses_in_pixels_and_the_world() {
+    let dir = tempfile::tempdir().unwrap();
+    let (server, mut client) = start(&settings(dir.path(), &[]), untrained_model()).await;
+    let point = |image: [f64; 2], world: [f64; 2]| proto::CalibrationPoint {
+        image_x: image[0],
+        image_y: image[1],
+        world_x: world[0],
+        world_y: world[1],
+    };
+    // An exact synthetic calibration: a camera looking at the plane at an angle.
+    let view = |p: [f64; 2]| {
+        let w = 0.0004 * p[0] - 0.0002 * p[1] + 1.0;
+        [
+            (0.21 * p[0] + 0.03 * p[1] - 12.0) / w,
+            (-0.02 * p[0] + 0.19 * p[1] + 40.0) / w,
+        ]
+    };
+    let calibrate =
+        |id: &str, image: &[[f64; 2]], replace: bool| proto::RegisterCalibrationRequest {
+            calibration_id: id.into(),
+            points: image.iter().map(|&p| point(p, view(p))).collect(),
+            unit: "mm".into(),
+            replace,
+        };
+    let corners = [
+        [0.0, 0.0],
+        [199.0, 0.0],
+        [199.0, 199.0],
+        [0.0, 199.0],
+        [90.0, 120.0],
+    ];
+
+    // Points that determine no map, and unknown IDs: named, and nothing stored.
+    for (what, points, needle) in [
+        (
+            "collinear",
+            vec![[0.0, 0.0], [50.0, 50.0], [100.0, 100.0]],
+            "one line",
+        ),
+        (
+            "duplicated",
+            vec![[0.0, 0.0], [100.0, 0.0], [0.0, 100.0], [100.0, 0.0]],
+            "same image position",
+        ),
+        (
+            "too few",
+            vec![[0.0, 0.0], [100.0, 0.0]],
+            "3 to 1000 points",
+        ),
+    ] {
+        let status = client
+            .register_calibration(calibrate("belt", &points, false))
+            .await
+            .unwrap_err();
+        assert_eq!(status.code(), Code::InvalidArgument, "{what}: {status:?}");
+        assert!(
+            status.message().contains(needle),
+            "{what}: {}",
+            status.message()
+        );
+    }
+    let unknown = client
+        .get_calibration(proto::GetCalibrationRequest {
+            calibration_id: "belt".into(),
+        })
+        .await
+        .unwrap_err();
+    assert_eq!(unknown.code(), Code::NotFound, "{unknown:?}");
+
+    let belt = client
+        .register_calibration(calibrate("belt", &corners, false))
+        .await
+        .unwrap()
+        .into_inner();
+    assert_eq!(
+        belt.model,
+        proto::calibration_info::Model::Homography as i32
+    );
+    assert!(belt.rms_residual < 1e-6, "{}", belt.rms_residual);
+    assert_eq!(
+        (belt.points.len(), belt.unit.as_str(), belt.version),
+        (5, "mm", 1)
+    );
+    // The same again is a no-op; other points need replace.
+    let again = client
+        .register_calibration(calibrate("belt", &corners, false))
+        .await
+        .unwrap()
+        .into_inner();
+    assert_eq!(again, belt);
+    let three = [[0.0, 0.0], [199.0, 0.0], [0.0, 199.0]];
+    let clash = client
+        .register_calibration(calibrate("belt", &three, false))
+        .await
+        .unwrap_err();
+    assert_eq!(clash.code(), Code::AlreadyExists, "{clash:?}");
+    let affine = client
+        .register_calibration(calibrate("belt-affine", &three, false))
+        .await
+        .unwrap()
+        .into_inner();
+    assert_eq!(affine.model, proto::calibration_info::Model::Affine as i32);
+    let listed = client
+        .list_calibrations(proto::ListCalibrationsRequest {
+            page_size: 1,
+            page_token: String::new(),
+        })
+        .await
+        .unwrap()
+        .into_inner();
+    assert_eq!(listed.calibrations.len(), 1);
+    assert_eq!(listed.calibrations[0].calibration_id, "belt");
+    let rest = client
+        .list_calibrations(proto::ListCalibrationsRequest {
+            page_size: 10,
+            page_token: listed.next_page_token,
+        })
+        .await
+        .unwrap()
+        .into_inner();
+    assert_eq!(rest.calibrations.len(), 1);
+    assert_eq!(rest.calibrations[0].calibration_id, "belt-affine");
+
+    // A template with an origin at its top-left pixel; one coordinate alone is refused.
+    let half = proto::RegisterTemplateRequest {
+        origin_x: Some(0.0),
+        ..register_request("placed", template_png(1))
+    };
+    let status = client.register_template(half).await.unwrap_err();
+    assert_eq!(status.code(), Code::InvalidArgument, "{status:?}");
+    assert!(
+        status.message().contains("origin_x/origin_y"),
+        "{}",
+        status.message()
+    );
+    let far = proto::RegisterTemplateRequest {
+        origin_x: Some(1e6),
+        origin_y: Some(0.0),
+        ..register_request("placed", template_png(1))
+    };
+    assert_eq!(
+        client.register_template(far).await.unwrap_err().code(),
+        Code::InvalidArgument
+    );
+    let placed = proto::RegisterTemplateRequest {
+        origin_x: Some(0.0),
+        origin_y: Some(0.0),
+        ..register_request("placed", template_png(1))
+    };
+    let info = client.register_template(placed).await.unwrap().into_inner();
+    assert_eq!((info.origin_x, info.origin_y), (Some(0.0), Some(0.0)));
+    let plain = client
+        .register_template(register_request("plain", template_png(1)))
+        .await
+        .unwrap()
+        .into_inner();
+    assert_ne!(
+        plain.content_sha256, info.content_sha256,
+        "the origin is content"
+    );
+    assert_eq!((plain.origin_x, plain.origin_y), (None, None));
+
+    // The template is scene(200, 200, 1) cropped at (60, 70): found there, upright.
+    let find = |template_id: &str, calibration_id: &str| {
+        let mut request = match_request(template_id, png(&scene(200, 200, 1)), "w");
+        request.options = Some(proto::MatchOptions {
+            method: proto::Method::Ncc as i32,
+            max_instances: 1,
+            angle_start_deg: -10.0,
+            angle_extent_deg: 20.0,
+            scale_min: 0.9,
+            scale_max: 1.1,
+            calibration_id: calibration_id.into(),
+            ..Default::default()
+        });
+        request
+    };
+    let answer = client
+        .r#match(find("placed", "belt"))
+        .await
+        .unwrap()
+        .into_inner();
+    assert_eq!(answer.world_unit, "mm");
+    let pose = &answer.poses[0];
+    assert!(
+        (pose.x - 77.5).abs() < 0.5 && (pose.y - 89.5).abs() < 0.5,
+        "{pose:?}"
+    );
+    // The origin is where the transform sends template pixel (0, 0), near (60, 70).
+    let t = &pose.transform;
+    assert_eq!((pose.origin_x, pose.origin_y), (t[2], t[5]));
+    assert!((pose.origin_x - 60.0).abs() < 0.5 && (pose.origin_y - 70.0).abs() < 0.5);
+    // World coordinates are the calibration applied to the origin.
+    let [wx, wy] = view([pose.origin_x as f64, pose.origin_y as f64]);
+    let (x, y) = (pose.world_x.unwrap(), pose.world_y.unwrap());
+    assert!(
+        (x - wx).abs() < 1e-3 && (y - wy).abs() < 1e-3,
+        "{x} {y} vs {wx} {wy}"
+    );
+    assert!(pose.world_angle_deg.is_some());
+    // Without a calibration: no world fields; without an origin: the origin is the centre.
+    let answer = client
+        .r#match(find("plain", ""))
+        .await
+        .unwrap()
+        .into_inner();
+    let pose = &answer.poses[0];
+    assert_eq!(answer.world_unit, "");
+    assert!(pose.world_x.is_none() && pose.world_angle_deg.is_none());
+    assert!((pose.origin_x - pose.x).abs() < 1e-4 && (pose.origin_y - pose.y).abs() < 1e-4);
+    // An unknown calibration is NOT_FOUND, naming it.
+    let status = client.r#match(find("plain", "nope")).await.unwrap_err();
+    assert_eq!(status.code(), Code::NotFound, "{status:?}");
+    assert!(
+        status.message().contains("calibration"),
+        "{}",
+        status.message()
+    );
+
+    // Deleted, and kept across a restart like templates.
+    let deleted = client
+        .delete_calibration(proto::DeleteCalibrationRequest {
+            calibration_id: "belt-affine".into(),
+        })
+        .await
+        .unwrap()
+        .into_inner();
+    assert!(deleted.deleted);
+    drop(client);
+    drop(server);
+    let (_server, mut client) = start(&settings(dir.path(), &[]), untrained_model()).await;
+    let kept = client
+        .get_calibration(proto::GetCalibrationRequest {
+            calibration_id: "belt".into(),
+        })
+        .await
+        .unwrap()
+        .into_inner();
+    assert_eq!(kept, belt);
+    let gone = client
+        .get_calibration(proto::GetCalibrationRequest {
+            calibration_id: "belt-affine".into(),
+        })
+        .await
+        .unwrap_err();
+    assert_eq!(gone.code(), Code::NotFound);
+    let template = client
+        .get_template(proto::GetTemplateRequest {
+            template_id: "placed".into(),
+            include_image: false,
+        })
+        .await
+        .unwrap()
+        .into_inner();
+    assert_eq!(
+        (template.origin_x, template.origin_y),
+        (Some(0.0), Some(0.0))
+    );
+}

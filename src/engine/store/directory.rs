@@ -27,11 +27,18 @@ use std::sync::{Mutex, RwLock};
 
 use sha2::{Digest, Sha256};
 
-use super::{NewTemplate, Opened, PutOutcome, StoreError, TemplateMeta, io_error, is_hex_digest};
+use super::{
+    CalibrationRecord, NewTemplate, Opened, PutOutcome, StoreError, TemplateMeta, io_error,
+    is_hex_digest,
+};
+use crate::world::CalibrationSpec;
 
 /// Sub-directory of the template directory where files that are not valid templates are moved
 /// at start.
 pub const SET_ASIDE_DIR: &str = "set-aside";
+/// Sub-directory of the template directory holding calibrations ([`crate::world`]), one
+/// `<key>.json` each (the key as for templates), written the same atomic way.
+pub const CALIBRATION_DIR: &str = "calibrations";
 
 /// What a scan of the directory at start found.
 #[derive(Debug, Default)]
@@ -287,6 +294,7 @@ impl DirectoryStore {
             created_unix_ms: previous.as_ref().map_or(now_unix_ms, |p| p.created_unix_ms),
             updated_unix_ms: now_unix_ms,
             version: previous.as_ref().map_or(1, |p| p.version + 1),
+            origin: new.origin,
         };
         self.save(&meta, &new.png, previous.as_ref())?;
         self.index
@@ -371,6 +379,7 @@ impl DirectoryStore {
             &self.image_bytes(meta)?,
             &path.display().to_string(),
             &meta.content_sha256,
+            meta.origin,
         )
         .map(|(image, _mask)| image)
     }
@@ -389,9 +398,12 @@ impl DirectoryStore {
         Ok(())
     }
 
+    /// Writes `path` (in the template directory or one of its sub-directories) by a
+    /// temporary file, a rename and a sync of its directory.
     fn write_atomically(&self, path: &Path, bytes: &[u8]) -> Result<(), StoreError> {
         let name = path.file_name().and_then(|n| n.to_str()).unwrap_or("file");
-        let tmp = self.dir.join(format!(".tmp-{name}-{}", std::process::id()));
+        let folder = path.parent().unwrap_or(&self.dir);
+        let tmp = folder.join(format!(".tmp-{name}-{}", std::process::id()));
         let written = File::create(&tmp).and_then(|mut file| {
             file.write_all(bytes)?;
             file.sync_all()
@@ -402,14 +414,127 @@ impl DirectoryStore {
             return Err(io_error(&tmp)(e));
         }
         fs::rename(&tmp, path).map_err(io_error(path))?;
-        self.sync_dir()
+        sync_folder(folder)
     }
 
     fn sync_dir(&self) -> Result<(), StoreError> {
-        File::open(&self.dir)
-            .and_then(|d| d.sync_all())
-            .map_err(io_error(&self.dir))
+        sync_folder(&self.dir)
     }
+
+    fn calibration_path(&self, calibration_id: &str) -> PathBuf {
+        self.dir
+            .join(CALIBRATION_DIR)
+            .join(format!("{}.json", Self::key(calibration_id)))
+    }
+
+    pub fn get_calibration(
+        &self,
+        calibration_id: &str,
+    ) -> Result<Option<CalibrationRecord>, StoreError> {
+        let path = self.calibration_path(calibration_id);
+        let bytes = match fs::read(&path) {
+            Ok(bytes) => bytes,
+            Err(e) if e.kind() == std::io::ErrorKind::NotFound => return Ok(None),
+            Err(e) => return Err(io_error(&path)(e)),
+        };
+        let record: CalibrationRecord =
+            serde_json::from_slice(&bytes).map_err(|e| StoreError::Corrupt {
+                origin: path.display().to_string(),
+                message: e.to_string(),
+            })?;
+        Ok((record.calibration_id == calibration_id).then_some(record))
+    }
+
+    /// Every calibration file is read (there are a handful per line, not thousands); one that
+    /// cannot be read is logged and left out rather than failing the listing.
+    pub fn list_calibrations(
+        &self,
+        after: Option<&str>,
+        limit: usize,
+    ) -> Result<Vec<CalibrationRecord>, StoreError> {
+        let folder = self.dir.join(CALIBRATION_DIR);
+        let entries = match fs::read_dir(&folder) {
+            Ok(entries) => entries,
+            Err(e) if e.kind() == std::io::ErrorKind::NotFound => return Ok(Vec::new()),
+            Err(e) => return Err(io_error(&folder)(e)),
+        };
+        let mut records = Vec::new();
+        for entry in entries {
+            let path = entry.map_err(io_error(&folder))?.path();
+            let name = path.file_name().and_then(|n| n.to_str()).unwrap_or("");
+            if name.starts_with(".tmp-") || !name.ends_with(".json") {
+                continue;
+            }
+            let read = fs::read(&path).map_err(|e| e.to_string()).and_then(|b| {
+                serde_json::from_slice::<CalibrationRecord>(&b).map_err(|e| e.to_string())
+            });
+            match read {
+                Ok(record) if after.is_none_or(|a| record.calibration_id.as_str() > a) => {
+                    records.push(record)
+                }
+                Ok(_) => {}
+                Err(error) => {
+                    tracing::warn!(path = %path.display(), %error, "unreadable calibration file left out")
+                }
+            }
+        }
+        records.sort_by(|a, b| a.calibration_id.cmp(&b.calibration_id));
+        records.truncate(limit);
+        Ok(records)
+    }
+
+    pub fn put_calibration(
+        &self,
+        calibration_id: &str,
+        spec: &CalibrationSpec,
+        replace: bool,
+        now_unix_ms: i64,
+    ) -> Result<PutOutcome<CalibrationRecord>, StoreError> {
+        let _writing = self.writes.lock().expect("write lock");
+        let previous = self.get_calibration(calibration_id)?;
+        if let Some(previous) = &previous {
+            if &previous.spec == spec {
+                return Ok(PutOutcome::Unchanged(previous.clone()));
+            }
+            if !replace {
+                return Ok(PutOutcome::Conflict(previous.clone()));
+            }
+        }
+        let record = CalibrationRecord {
+            calibration_id: calibration_id.to_owned(),
+            spec: spec.clone(),
+            created_unix_ms: previous.as_ref().map_or(now_unix_ms, |p| p.created_unix_ms),
+            updated_unix_ms: now_unix_ms,
+            version: previous.as_ref().map_or(1, |p| p.version + 1),
+        };
+        let folder = self.dir.join(CALIBRATION_DIR);
+        fs::create_dir_all(&folder).map_err(io_error(&folder))?;
+        let json = serde_json::to_vec_pretty(&record).expect("a calibration is plain data");
+        self.write_atomically(&self.calibration_path(calibration_id), &json)?;
+        Ok(PutOutcome::Written {
+            meta: record,
+            created: previous.is_none(),
+        })
+    }
+
+    pub fn remove_calibration(&self, calibration_id: &str) -> Result<bool, StoreError> {
+        let _writing = self.writes.lock().expect("write lock");
+        let path = self.calibration_path(calibration_id);
+        match fs::remove_file(&path) {
+            Ok(()) => {
+                sync_folder(&self.dir.join(CALIBRATION_DIR))?;
+                Ok(true)
+            }
+            Err(e) if e.kind() == std::io::ErrorKind::NotFound => Ok(false),
+            Err(e) => Err(io_error(&path)(e)),
+        }
+    }
+}
+
+fn sync_folder(folder: &Path) -> Result<(), StoreError> {
+    File::open(folder)
+        .and_then(|d| d.sync_all())
+        .map_err(io_error(folder))
 }
 
 /// `<key>.<content>.png`.
@@ -452,10 +577,11 @@ mod tests {
             width: img.width,
             height: img.height,
             labels: [("line".to_string(), "3".to_string())].into(),
-            content_sha256: content_sha256(img, None),
+            content_sha256: content_sha256(img, None, None),
             created_unix_ms: 1,
             updated_unix_ms: 1,
             version: 1,
+            origin: None,
         }
     }
 
@@ -480,7 +606,10 @@ mod tests {
         let (store, opened) = DirectoryStore::scan(dir.path()).unwrap();
         assert_eq!(opened.metas, vec![meta("part/7 ü", &img)]);
         let back = store.load_image(&opened.metas[0]).unwrap();
-        assert_eq!(content_sha256(&back, None), content_sha256(&img, None));
+        assert_eq!(
+            content_sha256(&back, None, None),
+            content_sha256(&img, None, None)
+        );
         assert_eq!(back.pixels, img.pixels);
     }
 
@@ -621,7 +750,8 @@ mod tests {
             width: img.width,
             height: img.height,
             labels: Default::default(),
-            content_sha256: content_sha256(img, None),
+            content_sha256: content_sha256(img, None, None),
+            origin: None,
             png: encode_png16(img, None),
         };
         let (a, b) = (image(1), image(2));

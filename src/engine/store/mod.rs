@@ -22,13 +22,15 @@ use sha2::{Digest, Sha256};
 use tokio::sync::mpsc;
 
 use super::Metrics;
+use crate::geometry::TemplateOrigin;
 use crate::imaging::{RgbImage32, decode_image_and_opacity};
 use crate::matcher::{TEMPLATE_LIMITS, TemplateMask};
+use crate::world::CalibrationSpec;
 use directory::DirectoryStore;
 use postgres::{PostgresStore, PostgresUrl};
 
 /// What we keep about a registered template besides its pixels.
-#[derive(Debug, Clone, PartialEq, Eq, Serialize, Deserialize)]
+#[derive(Debug, Clone, PartialEq, Serialize, Deserialize)]
 pub struct TemplateMeta {
     pub template_id: String,
     pub width: u32,
@@ -47,6 +49,10 @@ pub struct TemplateMeta {
     /// apart without comparing hashes. 0 in metadata written before versions were kept.
     #[serde(default)]
     pub version: i64,
+    /// The reference point registered with the template ([`TemplateOrigin`]); `None`: its
+    /// centre. Part of the content hash.
+    #[serde(default, skip_serializing_if = "Option::is_none")]
+    pub origin: Option<TemplateOrigin>,
 }
 
 /// A template to write: its metadata as the client gave it and its image, encoded once by the
@@ -58,18 +64,30 @@ pub struct NewTemplate {
     pub height: u32,
     pub labels: BTreeMap<String, String>,
     pub content_sha256: String,
+    pub origin: Option<TemplateOrigin>,
     pub png: Vec<u8>,
 }
 
-/// What [`TemplateStore::put`] did.
-#[derive(Debug, Clone, PartialEq, Eq)]
-pub enum PutOutcome {
-    /// The ID already holds exactly this image: nothing was written.
-    Unchanged(TemplateMeta),
-    /// The ID holds another image and `replace` was not given: nothing was written.
-    Conflict(TemplateMeta),
+/// A registered calibration ([`crate::world`]): the points and unit as the client gave them
+/// (the map is fitted again from them when used), and its bookkeeping.
+#[derive(Debug, Clone, PartialEq, Serialize, Deserialize)]
+pub struct CalibrationRecord {
+    pub calibration_id: String,
+    pub spec: CalibrationSpec,
+    pub created_unix_ms: i64,
+    pub updated_unix_ms: i64,
+    pub version: i64,
+}
+
+/// What a `put` did, for templates ([`TemplateMeta`]) and calibrations ([`CalibrationRecord`]).
+#[derive(Debug, Clone, PartialEq)]
+pub enum PutOutcome<Meta = TemplateMeta> {
+    /// The ID already holds exactly this content: nothing was written.
+    Unchanged(Meta),
+    /// The ID holds other content and `replace` was not given: nothing was written.
+    Conflict(Meta),
     /// Committed; `created` is false for a replacement.
-    Written { meta: TemplateMeta, created: bool },
+    Written { meta: Meta, created: bool },
 }
 
 /// A change another replica committed, announced by the store so cached kernels can follow.
@@ -263,7 +281,7 @@ impl TemplateStore {
         };
         let origin = format!("`{}`", meta.template_id.escape_debug());
         let image = blocking(move || {
-            decode_stored(&png, &origin, &meta.content_sha256)
+            decode_stored(&png, &origin, &meta.content_sha256, meta.origin)
                 .map(|(image, mask)| (meta, image, mask))
         })
         .await??;
@@ -314,6 +332,77 @@ impl TemplateStore {
         .await
     }
 
+    pub async fn get_calibration(
+        &self,
+        calibration_id: &str,
+    ) -> Result<Option<CalibrationRecord>, StoreError> {
+        self.timed("get_calibration", async {
+            match &self.backend {
+                Backend::Directory(store) => {
+                    let (store, id) = (store.clone(), calibration_id.to_owned());
+                    blocking(move || store.get_calibration(&id)).await?
+                }
+                Backend::Postgres(store) => store.get_calibration(calibration_id).await,
+            }
+        })
+        .await
+    }
+
+    /// Up to `limit` calibrations with IDs after `after`, in byte order of the ID.
+    pub async fn list_calibrations(
+        &self,
+        after: Option<&str>,
+        limit: usize,
+    ) -> Result<Vec<CalibrationRecord>, StoreError> {
+        self.timed("list_calibrations", async {
+            match &self.backend {
+                Backend::Directory(store) => {
+                    let (store, after) = (store.clone(), after.map(str::to_owned));
+                    blocking(move || store.list_calibrations(after.as_deref(), limit)).await?
+                }
+                Backend::Postgres(store) => store.list_calibrations(after, limit).await,
+            }
+        })
+        .await
+    }
+
+    /// Writes a calibration unless the ID holds the same points and unit, or other ones and
+    /// `replace` is false; the check and the write are one atomic step.
+    pub async fn put_calibration(
+        &self,
+        calibration_id: &str,
+        spec: CalibrationSpec,
+        replace: bool,
+    ) -> Result<PutOutcome<CalibrationRecord>, StoreError> {
+        self.timed("put_calibration", async {
+            match &self.backend {
+                Backend::Directory(store) => {
+                    let (store, id) = (store.clone(), calibration_id.to_owned());
+                    blocking(move || store.put_calibration(&id, &spec, replace, now_unix_ms()))
+                        .await?
+                }
+                Backend::Postgres(store) => {
+                    store.put_calibration(calibration_id, &spec, replace).await
+                }
+            }
+        })
+        .await
+    }
+
+    /// Removes a calibration; `false` when it was not registered.
+    pub async fn remove_calibration(&self, calibration_id: &str) -> Result<bool, StoreError> {
+        self.timed("remove_calibration", async {
+            match &self.backend {
+                Backend::Directory(store) => {
+                    let (store, id) = (store.clone(), calibration_id.to_owned());
+                    blocking(move || store.remove_calibration(&id)).await?
+                }
+                Backend::Postgres(store) => store.remove_calibration(calibration_id).await,
+            }
+        })
+        .await
+    }
+
     async fn timed<T>(
         &self,
         operation: &str,
@@ -351,24 +440,25 @@ pub(crate) fn now_unix_ms() -> i64 {
 }
 
 /// Decodes a stored image and its mask (the PNG's alpha channel, see [`encode_png16`]) and
-/// checks them against the hash they were registered with; `origin` names it in errors (a
-/// file, or a template ID in the database).
+/// checks them, with the registered `template_origin`, against the hash they were registered
+/// with; `source` names it in errors (a file, or a template ID in the database).
 pub fn decode_stored(
     png: &[u8],
-    origin: &str,
+    source: &str,
     content_sha256: &str,
+    template_origin: Option<TemplateOrigin>,
 ) -> Result<(RgbImage32, Option<TemplateMask>), StoreError> {
     let corrupt = |message: String| StoreError::Corrupt {
-        origin: origin.to_owned(),
+        origin: source.to_owned(),
         message,
     };
-    let (image, opaque) = decode_image_and_opacity(png, origin, TEMPLATE_LIMITS)
+    let (image, opaque) = decode_image_and_opacity(png, source, TEMPLATE_LIMITS)
         .map_err(|e| corrupt(e.to_string()))?;
     let mask = opaque
         .map(|used| TemplateMask::new(image.width, image.height, used))
         .transpose()
         .map_err(|e| corrupt(e.to_string()))?;
-    let found = self::content_sha256(&image, mask.as_ref());
+    let found = self::content_sha256(&image, mask.as_ref(), template_origin);
     if found != content_sha256 {
         return Err(corrupt(format!(
             "its pixels hash to {found}, not to the registered {content_sha256}"
@@ -414,9 +504,15 @@ pub fn encode_png16(image: &RgbImage32, mask: Option<&TemplateMask>) -> Vec<u8> 
 }
 
 /// Hex SHA-256 of a template's content (size and 16-bit samples, then one byte per pixel of
-/// its mask, 1 = used, when it has one): equal templates, equal hashes, whatever format they
-/// arrived in; a template without a mask hashes as it did before masks existed.
-pub fn content_sha256(image: &RgbImage32, mask: Option<&TemplateMask>) -> String {
+/// its mask, 1 = used, when it has one, then its origin's x and y as big-endian f32 when it has
+/// one): equal templates, equal hashes, whatever format they arrived in; a template without a
+/// mask or origin hashes as it did before they existed. The origin is in the hash so that a
+/// new origin is a new version of the template, which every replica's cache notices.
+pub fn content_sha256(
+    image: &RgbImage32,
+    mask: Option<&TemplateMask>,
+    origin: Option<TemplateOrigin>,
+) -> String {
     let mut hasher = Sha256::new();
     hasher.update(image.width.to_be_bytes());
     hasher.update(image.height.to_be_bytes());
@@ -426,6 +522,10 @@ pub fn content_sha256(image: &RgbImage32, mask: Option<&TemplateMask>) -> String
     if let Some(mask) = mask {
         let flags: Vec<u8> = mask.used().iter().map(|&used| u8::from(used)).collect();
         hasher.update(&flags);
+    }
+    if let Some(origin) = origin {
+        hasher.update(origin.x.to_be_bytes());
+        hasher.update(origin.y.to_be_bytes());
     }
     hex::encode(hasher.finalize())
 }
@@ -479,8 +579,14 @@ mod tests {
     fn content_hash_depends_on_pixels_and_size() {
         let a = RgbImage32::new(2, 1, vec![0.0, 0.5, 1.0, 0.25, 0.75, 0.0]);
         let b = RgbImage32::new(1, 2, a.pixels.clone());
-        assert_eq!(content_sha256(&a, None), content_sha256(&a.clone(), None));
-        assert_ne!(content_sha256(&a, None), content_sha256(&b, None));
+        assert_eq!(
+            content_sha256(&a, None, None),
+            content_sha256(&a.clone(), None, None)
+        );
+        assert_ne!(
+            content_sha256(&a, None, None),
+            content_sha256(&b, None, None)
+        );
     }
 
     #[test]
@@ -488,17 +594,28 @@ mod tests {
         let (w, h) = (12u32, 10u32);
         let image = RgbImage32::new(w, h, (0..w * h * 3).map(|i| (i % 7) as f32 / 7.0).collect());
         let mask = TemplateMask::new(w, h, (0..w * h).map(|i| i % w < 6).collect()).unwrap();
-        let plain = content_sha256(&image, None);
-        let masked = content_sha256(&image, Some(&mask));
+        let plain = content_sha256(&image, None, None);
+        let masked = content_sha256(&image, Some(&mask), None);
         assert_ne!(plain, masked);
-        let (back, no_mask) = decode_stored(&encode_png16(&image, None), "t", &plain).unwrap();
+        let (back, no_mask) =
+            decode_stored(&encode_png16(&image, None), "t", &plain, None).unwrap();
         assert!(no_mask.is_none());
-        assert_eq!(content_sha256(&back, None), plain);
+        assert_eq!(content_sha256(&back, None, None), plain);
         let (back, back_mask) =
-            decode_stored(&encode_png16(&image, Some(&mask)), "t", &masked).unwrap();
+            decode_stored(&encode_png16(&image, Some(&mask)), "t", &masked, None).unwrap();
         assert_eq!(back_mask.as_ref(), Some(&mask));
-        assert_eq!(content_sha256(&back, back_mask.as_ref()), masked);
+        assert_eq!(content_sha256(&back, back_mask.as_ref(), None), masked);
         // The same pixels without their mask are not what was registered.
-        assert!(decode_stored(&encode_png16(&image, None), "t", &masked).is_err());
+        assert!(decode_stored(&encode_png16(&image, None), "t", &masked, None).is_err());
+        // An origin is part of what was registered: the same pixels without it, or with
+        // another, are not that template.
+        let origin = TemplateOrigin::new(1.5, 9.0, w, h).unwrap();
+        let placed = content_sha256(&image, None, Some(origin));
+        assert_ne!(placed, plain);
+        let png = encode_png16(&image, None);
+        assert!(decode_stored(&png, "t", &placed, Some(origin)).is_ok());
+        assert!(decode_stored(&png, "t", &placed, None).is_err());
+        let moved = TemplateOrigin::new(1.5, 8.0, w, h).unwrap();
+        assert!(decode_stored(&png, "t", &placed, Some(moved)).is_err());
     }
 }

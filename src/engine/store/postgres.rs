@@ -25,18 +25,23 @@ use tokio_postgres::error::SqlState;
 use tokio_postgres::types::Json;
 use tokio_postgres::{AsyncMessage, NoTls, Row};
 
-use super::{NewTemplate, Opened, PutOutcome, StoreError, StoreEvent, TemplateMeta};
+use super::{
+    CalibrationRecord, NewTemplate, Opened, PutOutcome, StoreError, StoreEvent, TemplateMeta,
+};
 use crate::engine::Metrics;
+use crate::geometry::TemplateOrigin;
+use crate::world::CalibrationSpec;
 
 /// The `LISTEN`/`NOTIFY` channel of template changes.
 pub const CHANNEL: &str = "posematch_templates";
 
 /// Versioned schema changes, applied once each, in order. Never edit one that has shipped:
 /// add the next version.
-const MIGRATIONS: &[(i32, &str, &str)] = &[(
-    1,
-    "templates table",
-    r#"CREATE TABLE posematch_templates (
+const MIGRATIONS: &[(i32, &str, &str)] = &[
+    (
+        1,
+        "templates table",
+        r#"CREATE TABLE posematch_templates (
         template_id    text COLLATE "C" PRIMARY KEY,
         image_png      bytea NOT NULL,
         content_sha256 text NOT NULL CHECK (content_sha256 ~ '^[0-9a-f]{64}$'),
@@ -47,7 +52,32 @@ const MIGRATIONS: &[(i32, &str, &str)] = &[(
         updated_at     timestamptz NOT NULL,
         version        bigint NOT NULL CHECK (version > 0)
     )"#,
-)];
+    ),
+    (
+        2,
+        "template origins",
+        r#"ALTER TABLE posematch_templates
+        ADD COLUMN origin_x real,
+        ADD COLUMN origin_y real,
+        ADD CONSTRAINT posematch_templates_origin_both CHECK ((origin_x IS NULL) = (origin_y IS NULL))"#,
+    ),
+    (
+        3,
+        "calibrations table",
+        r#"CREATE TABLE posematch_calibrations (
+        calibration_id text COLLATE "C" PRIMARY KEY,
+        spec           jsonb NOT NULL,
+        created_at     timestamptz NOT NULL,
+        updated_at     timestamptz NOT NULL,
+        version        bigint NOT NULL CHECK (version > 0)
+    )"#,
+    ),
+];
+
+/// The calibration columns, as [`calibration_of`] reads them.
+const CALIBRATION_COLUMNS: &str = "calibration_id, spec, \
+    (extract(epoch from created_at) * 1000)::bigint AS created_unix_ms, \
+    (extract(epoch from updated_at) * 1000)::bigint AS updated_unix_ms, version";
 
 /// Advisory lock key held while migrating (any constant; "pmatch" in ASCII).
 const MIGRATION_LOCK: i64 = 0x706d_6174_6368;
@@ -64,7 +94,8 @@ const RECONNECT_MOST: Duration = Duration::from_secs(5);
 /// The metadata columns, as [`meta_of`] reads them.
 const META_COLUMNS: &str = "template_id, width, height, labels, content_sha256, \
     (extract(epoch from created_at) * 1000)::bigint AS created_unix_ms, \
-    (extract(epoch from updated_at) * 1000)::bigint AS updated_unix_ms, version";
+    (extract(epoch from updated_at) * 1000)::bigint AS updated_unix_ms, version, \
+    origin_x, origin_y";
 
 /// A `postgres://` URL, parsed; shown without its password.
 #[derive(Clone)]
@@ -282,23 +313,28 @@ impl PostgresStore {
             let sql = if existing.is_some() {
                 format!(
                     "UPDATE posematch_templates SET image_png = $2, content_sha256 = $3, \
-                     width = $4, height = $5, labels = $6, updated_at = now(), \
-                     version = version + 1 WHERE template_id = $1 RETURNING {META_COLUMNS}"
+                     width = $4, height = $5, labels = $6, origin_x = $7, origin_y = $8, \
+                     updated_at = now(), version = version + 1 WHERE template_id = $1 \
+                     RETURNING {META_COLUMNS}"
                 )
             } else {
                 format!(
                     "INSERT INTO posematch_templates (template_id, image_png, content_sha256, \
-                     width, height, labels, created_at, updated_at, version) \
-                     VALUES ($1, $2, $3, $4, $5, $6, now(), now(), 1) RETURNING {META_COLUMNS}"
+                     width, height, labels, origin_x, origin_y, created_at, updated_at, version) \
+                     VALUES ($1, $2, $3, $4, $5, $6, $7, $8, now(), now(), 1) \
+                     RETURNING {META_COLUMNS}"
                 )
             };
-            let params: [&(dyn tokio_postgres::types::ToSql + Sync); 6] = [
+            let (origin_x, origin_y) = (new.origin.map(|o| o.x), new.origin.map(|o| o.y));
+            let params: [&(dyn tokio_postgres::types::ToSql + Sync); 8] = [
                 &new.template_id,
                 &new.png,
                 &new.content_sha256,
                 &width,
                 &height,
                 &labels,
+                &origin_x,
+                &origin_y,
             ];
             let row = tx.query_one(&sql, &params).await.map_err(db_error)?;
             let meta = meta_of(&row);
@@ -331,6 +367,130 @@ impl PostgresStore {
         })
         .await
     }
+}
+
+impl PostgresStore {
+    pub async fn get_calibration(
+        &self,
+        calibration_id: &str,
+    ) -> Result<Option<CalibrationRecord>, StoreError> {
+        within_timeout(async {
+            let client = self.pool.get().await.map_err(pool_error)?;
+            let sql = format!(
+                "SELECT {CALIBRATION_COLUMNS} FROM posematch_calibrations WHERE calibration_id = $1"
+            );
+            let row = client
+                .query_opt(&sql, &[&calibration_id])
+                .await
+                .map_err(db_error)?;
+            row.map(|r| calibration_of(&r)).transpose()
+        })
+        .await
+    }
+
+    pub async fn list_calibrations(
+        &self,
+        after: Option<&str>,
+        limit: usize,
+    ) -> Result<Vec<CalibrationRecord>, StoreError> {
+        within_timeout(async {
+            let client = self.pool.get().await.map_err(pool_error)?;
+            let sql = format!(
+                "SELECT {CALIBRATION_COLUMNS} FROM posematch_calibrations \
+                 WHERE $1::text IS NULL OR calibration_id > $1 ORDER BY calibration_id LIMIT $2"
+            );
+            let rows = client
+                .query(&sql, &[&after, &(limit as i64)])
+                .await
+                .map_err(db_error)?;
+            rows.iter().map(calibration_of).collect()
+        })
+        .await
+    }
+
+    pub async fn put_calibration(
+        &self,
+        calibration_id: &str,
+        spec: &CalibrationSpec,
+        replace: bool,
+    ) -> Result<PutOutcome<CalibrationRecord>, StoreError> {
+        within_timeout(async {
+            let mut client = self.pool.get().await.map_err(pool_error)?;
+            let tx = client.transaction().await.map_err(db_error)?;
+            lock_id(&tx, &format!("calibration:{calibration_id}")).await?;
+            let sql = format!(
+                "SELECT {CALIBRATION_COLUMNS} FROM posematch_calibrations WHERE calibration_id = $1"
+            );
+            let existing = tx
+                .query_opt(&sql, &[&calibration_id])
+                .await
+                .map_err(db_error)?
+                .map(|r| calibration_of(&r))
+                .transpose()?;
+            if let Some(existing) = existing.as_ref() {
+                if &existing.spec == spec {
+                    return Ok(PutOutcome::Unchanged(existing.clone()));
+                }
+                if !replace {
+                    return Ok(PutOutcome::Conflict(existing.clone()));
+                }
+            }
+            let json = Json(spec);
+            let sql = if existing.is_some() {
+                format!(
+                    "UPDATE posematch_calibrations SET spec = $2, updated_at = now(), \
+                     version = version + 1 WHERE calibration_id = $1 RETURNING {CALIBRATION_COLUMNS}"
+                )
+            } else {
+                format!(
+                    "INSERT INTO posematch_calibrations (calibration_id, spec, created_at, \
+                     updated_at, version) VALUES ($1, $2, now(), now(), 1) \
+                     RETURNING {CALIBRATION_COLUMNS}"
+                )
+            };
+            let row = tx
+                .query_one(&sql, &[&calibration_id, &json])
+                .await
+                .map_err(db_error)?;
+            let record = calibration_of(&row)?;
+            tx.commit().await.map_err(db_error)?;
+            Ok(PutOutcome::Written {
+                meta: record,
+                created: existing.is_none(),
+            })
+        })
+        .await
+    }
+
+    pub async fn remove_calibration(&self, calibration_id: &str) -> Result<bool, StoreError> {
+        within_timeout(async {
+            let client = self.pool.get().await.map_err(pool_error)?;
+            let removed = client
+                .execute(
+                    "DELETE FROM posematch_calibrations WHERE calibration_id = $1",
+                    &[&calibration_id],
+                )
+                .await
+                .map_err(db_error)?;
+            Ok(removed > 0)
+        })
+        .await
+    }
+}
+
+fn calibration_of(row: &Row) -> Result<CalibrationRecord, StoreError> {
+    let calibration_id: String = row.get("calibration_id");
+    let spec: Json<CalibrationSpec> = row.try_get("spec").map_err(|e| StoreError::Corrupt {
+        origin: format!("calibration `{}`", calibration_id.escape_debug()),
+        message: e.to_string(),
+    })?;
+    Ok(CalibrationRecord {
+        calibration_id,
+        spec: spec.0,
+        created_unix_ms: row.get("created_unix_ms"),
+        updated_unix_ms: row.get("updated_unix_ms"),
+        version: row.get("version"),
+    })
 }
 
 /// Serialises writers of one ID across replicas until the transaction ends.
@@ -377,6 +537,10 @@ fn meta_of(row: &Row) -> TemplateMeta {
         created_unix_ms: row.get("created_unix_ms"),
         updated_unix_ms: row.get("updated_unix_ms"),
         version: row.get("version"),
+        origin: match (row.get("origin_x"), row.get("origin_y")) {
+            (Some(x), Some(y)) => Some(TemplateOrigin { x, y }),
+            _ => None,
+        },
     }
 }
 
