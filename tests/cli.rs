@@ -328,11 +328,10 @@ fn serve_failures_exit_with_the_documented_status() {
     assert!(!stderr.contains("panicked"), "{stderr}");
 }
 
-/// `--method ncc` answers batch files too (no weights needed); bad lines get their error.
-#[test]
-fn classical_matcher_runs_in_batch_mode() {
+/// A 96x96 image of random discs (`image.png`) and its 24x24 crop at (40, 30)
+/// (`template.png`) in `dir`.
+fn write_blob_pair(dir: &Path) {
     use rand::{Rng, SeedableRng};
-    let tmp = tempfile::tempdir().unwrap();
     let mut rng = rand::rngs::StdRng::seed_from_u64(3);
     let mut image = image::RgbImage::from_pixel(96, 96, image::Rgb([120, 100, 80]));
     for _ in 0..60 {
@@ -350,11 +349,149 @@ fn classical_matcher_runs_in_batch_mode() {
             }
         }
     }
-    image.save(tmp.path().join("image.png")).unwrap();
+    image.save(dir.join("image.png")).unwrap();
     image::imageops::crop_imm(&image, 40, 30, 24, 24)
         .to_image()
-        .save(tmp.path().join("template.png"))
+        .save(dir.join("template.png"))
         .unwrap();
+}
+
+/// `--template-origin` and `--calibration`: where the reference point lands, in pixels and in
+/// world units (equal to the calibration applied to it), and bad input named by its flag.
+#[test]
+fn origins_and_calibrations_from_the_command_line() {
+    let tmp = tempfile::tempdir().unwrap();
+    write_blob_pair(tmp.path());
+    let path = |name: &str| tmp.path().join(name).display().to_string();
+    // An exact homography: a camera looking at the plane at an angle, in millimetres.
+    let view = |x: f64, y: f64| {
+        let w = 0.001 * x - 0.0005 * y + 1.0;
+        (
+            (0.25 * x + 0.02 * y + 3.0) / w,
+            (-0.01 * x + 0.24 * y - 7.0) / w,
+        )
+    };
+    let points: Vec<Value> = [
+        (0.0, 0.0),
+        (95.0, 0.0),
+        (95.0, 95.0),
+        (0.0, 95.0),
+        (30.0, 60.0),
+    ]
+    .iter()
+    .map(|&(x, y)| {
+        let (wx, wy) = view(x, y);
+        serde_json::json!({"image": [x, y], "world": [wx, wy]})
+    })
+    .collect();
+    std::fs::write(
+        path("cal.json"),
+        serde_json::json!({"points": points, "unit": "mm"}).to_string(),
+    )
+    .unwrap();
+    let (template, image, calibration) =
+        (path("template.png"), path("image.png"), path("cal.json"));
+    let base = [
+        "match",
+        "--method",
+        "ncc",
+        "--template",
+        &template,
+        "--image",
+        &image,
+        "--max-instances",
+        "1",
+    ];
+    let with = |extra: &[&str]| {
+        let args: Vec<&str> = base.iter().chain(extra).copied().collect();
+        posematch(&args)
+    };
+    let (code, stdout, stderr) = with(&["--template-origin", "0,0", "--calibration", &calibration]);
+    assert_eq!(code, 0, "{stderr}");
+    let answer: Value = serde_json::from_str(&stdout).unwrap();
+    assert_eq!(answer["calibration"]["model"], "homography");
+    assert!(answer["calibration"]["rms_residual"].as_f64().unwrap() < 1e-6);
+    let pose = &answer["poses"][0];
+    let number = |key: &str| {
+        pose[key]
+            .as_f64()
+            .unwrap_or_else(|| panic!("{key}: {pose}"))
+    };
+    // Template pixel (0, 0) is the crop's corner (40, 30); the centre stays (51.5, 41.5).
+    assert!((number("origin_x") - 40.0).abs() < 0.5 && (number("origin_y") - 30.0).abs() < 0.5);
+    assert!((number("x") - 51.5).abs() < 0.5, "{pose}");
+    let (wx, wy) = view(number("origin_x"), number("origin_y"));
+    assert!(
+        (number("world_x") - wx).abs() < 1e-3 && (number("world_y") - wy).abs() < 1e-3,
+        "{pose}"
+    );
+
+    // Points on one line, duplicated points and an origin far off: exit 2, naming the flag.
+    std::fs::write(
+        path("line.json"),
+        r#"{"points": [{"image": [0, 0], "world": [0, 0]}, {"image": [10, 10], "world": [1, 1]},
+           {"image": [20, 20], "world": [2, 2]}], "unit": "mm"}"#,
+    )
+    .unwrap();
+    std::fs::write(
+        path("twice.json"),
+        r#"{"points": [{"image": [0, 0], "world": [0, 0]}, {"image": [10, 0], "world": [1, 0]},
+           {"image": [0, 10], "world": [0, 1]}, {"image": [10, 0], "world": [2, 2]}], "unit": "mm"}"#,
+    )
+    .unwrap();
+    for (extra, needle) in [
+        (
+            vec!["--calibration".to_string(), path("line.json")],
+            "one line",
+        ),
+        (
+            vec!["--calibration".to_string(), path("twice.json")],
+            "same image position",
+        ),
+        (
+            vec!["--template-origin".to_string(), "500,0".to_string()],
+            "--template-origin",
+        ),
+    ] {
+        let extra: Vec<&str> = extra.iter().map(String::as_str).collect();
+        let (code, _, stderr) = with(&extra);
+        assert_eq!(code, 2, "{extra:?}: {stderr}");
+        assert!(stderr.contains(needle), "{extra:?}: {stderr}");
+    }
+
+    // Batch mode: an origin per line, the calibration for the batch.
+    std::fs::write(
+        path("pairs.jsonl"),
+        r#"{"id": 1, "template": "template.png", "image": "image.png", "template_origin": [23, 23]}"#,
+    )
+    .unwrap();
+    let (code, _, stderr) = posematch(&[
+        "match",
+        "--method",
+        "ncc",
+        "--pairs",
+        &path("pairs.jsonl"),
+        "--out",
+        &path("out.jsonl"),
+        "--calibration",
+        &calibration,
+    ]);
+    assert_eq!(code, 0, "{stderr}");
+    let line: Value =
+        serde_json::from_str(&std::fs::read_to_string(path("out.jsonl")).unwrap()).unwrap();
+    let pose = &line["poses"][0];
+    assert!(
+        (pose["origin_x"].as_f64().unwrap() - 63.0).abs() < 0.5,
+        "{pose}"
+    );
+    assert!(pose["world_x"].is_number(), "{pose}");
+}
+
+/// `--method ncc` answers batch files too (no weights needed); bad lines get their error.
+#[test]
+fn classical_matcher_runs_in_batch_mode() {
+    let tmp = tempfile::tempdir().unwrap();
+    write_blob_pair(tmp.path());
     let pairs = tmp.path().join("pairs.jsonl");
     std::fs::write(
         &pairs,
