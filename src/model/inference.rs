@@ -10,8 +10,8 @@ use std::sync::{Mutex, PoisonError};
 use burn::prelude::*;
 
 use super::cpu::{
-    self, BufferPool, CpuBackbone, CpuUpsampler, Patch, PoseHeads, UpsamplerTrace, converted,
-    correlate,
+    self, BufferPool, CpuBackbone, CpuFeatures, CpuUpsampler, Patch, PoseHeads, UpsamplerTrace,
+    converted, correlate,
 };
 use super::device::is_host_cpu;
 use super::network::{BackboneTrace, MatchMaps, SearchTrace, Tdcm};
@@ -76,6 +76,10 @@ impl CpuSearch {
     /// when `trace`. `maps` holds the whole batch's maps; an empty one is taken from the pool
     /// once the backbone's features are back there (a large frame's features buffer then
     /// holds its maps: the two are never needed at once).
+    /// `shared` carries the backbone's features between consecutive samples of one image (the
+    /// template-independent half of a search: both contrasts of `Polarity::Either`): taken
+    /// instead of running the backbone when it holds some, and left holding this sample's
+    /// when `keep` (the next sample searches the same image).
     #[allow(clippy::too_many_arguments)]
     fn sample(
         &self,
@@ -88,6 +92,7 @@ impl CpuSearch {
         pose: PoseHeads,
         maps: &mut Vec<f32>,
         maps_for: BatchMaps,
+        shared: (&mut Option<CpuFeatures>, bool),
     ) -> Option<CpuSampleTrace> {
         // Concurrent samples each take what the pool holds (possibly nothing), never wait.
         let mut pool =
@@ -100,9 +105,9 @@ impl CpuSearch {
             k,
         };
         let trace = if self.upsampler.takes_bf16() {
-            self.sample_with::<u16>(sample, trace, pose, &mut pool, (maps, maps_for))
+            self.sample_with::<u16>(sample, trace, pose, &mut pool, (maps, maps_for), shared)
         } else {
-            self.sample_with::<f32>(sample, trace, pose, &mut pool, (maps, maps_for))
+            self.sample_with::<f32>(sample, trace, pose, &mut pool, (maps, maps_for), shared)
         };
         self.pool
             .lock()
@@ -119,6 +124,7 @@ impl CpuSearch {
         pose: PoseHeads,
         pool: &mut BufferPool,
         (maps, maps_for): (&mut Vec<f32>, BatchMaps),
+        (shared, keep): (&mut Option<CpuFeatures>, bool),
     ) -> Option<CpuSampleTrace> {
         let SampleInput {
             image,
@@ -127,9 +133,14 @@ impl CpuSearch {
             kernels,
             k,
         } = sample;
-        let out = self.backbone.forward(image, height, width, trace, pool);
+        let mut out = match shared.take() {
+            Some(features) if !trace => features,
+            _ => self.backbone.forward(image, height, width, trace, pool),
+        };
         let (h, w) = (out.height, out.width);
-        // The features go back to the pool once correlated, unless traced.
+        let (stem, stage1) = (out.stem.take(), out.stage1.take());
+        // The features go back to the pool once correlated, unless traced or kept for the
+        // next sample.
         let (correlation, traced) = if trace {
             let correlation = correlate::<f32>(&out.features, h, w, kernels, k, pool);
             (
@@ -138,7 +149,11 @@ impl CpuSearch {
             )
         } else {
             let correlation = correlate::<T>(&out.features, h, w, kernels, k, pool);
-            pool.give(out.features);
+            if keep {
+                *shared = Some(out);
+            } else {
+                pool.give(out.features);
+            }
             (correlation, None)
         };
         if maps.is_empty() {
@@ -151,8 +166,8 @@ impl CpuSearch {
         upsampler
             .zip(traced)
             .map(|(upsampler, (features, correlation))| CpuSampleTrace {
-                stem: out.stem.expect("traced"),
-                stage1: out.stage1.expect("traced"),
+                stem: stem.expect("traced"),
+                stage1: stage1.expect("traced"),
                 features,
                 correlation,
                 upsampler,
@@ -424,9 +439,15 @@ impl CpuSearch {
         // keeps a large frame's 20 bytes per pixel from being allocated anew every frame.
         let mut maps = Vec::new();
         let mut traces = Vec::new();
+        // Consecutive samples of one image (both contrasts of `Polarity::Either`) run the
+        // backbone once: comparing the inputs costs a pass over them, the backbone a third of
+        // a network pass.
+        let image = |i: usize| &batch.images[i * image_len..(i + 1) * image_len];
+        let mut shared = None;
         for i in 0..batch.batch {
+            let keep = !trace && i + 1 < batch.batch && image(i + 1) == image(i);
             let traced = self.sample(
-                &batch.images[i * image_len..(i + 1) * image_len],
+                image(i),
                 batch.height,
                 batch.width,
                 &batch.kernels[i * kernel_len..(i + 1) * kernel_len],
@@ -439,6 +460,7 @@ impl CpuSearch {
                     samples: batch.batch,
                     per_sample: 5 * map_h * map_w,
                 },
+                (&mut shared, keep),
             );
             if trace {
                 traces.push(traced.expect("a traced sample returns its trace"));
@@ -484,5 +506,31 @@ mod tests {
                 "{precision:?}: maps differ"
             );
         }
+    }
+
+    /// One image searched with two kernels in a row (what `Polarity::Either` sends) runs the
+    /// backbone once; the maps are those of two separate searches, bit for bit.
+    #[test]
+    fn consecutive_samples_of_one_image_share_the_backbone_exactly() {
+        let device = Default::default();
+        let model = TdcmConfig::new().init(&device);
+        let network = InferenceNetwork::host(model)
+            .with_precision(Precision::F32)
+            .unwrap();
+        let templates = Tensor::<4>::random([2, 3, 36, 36], Distribution::Default, &device);
+        let kernels = network.encode_templates(templates);
+        let image = Tensor::<4>::random([1, 3, 72, 88], Distribution::Default, &device);
+        let shared = network.forward(image.clone().repeat_dim(0, 2), kernels.clone());
+        // The traced path never shares: every sample runs its own backbone.
+        let (separate, _) = network.forward_traced(image.repeat_dim(0, 2), kernels);
+        let (a, b): (Vec<f32>, Vec<f32>) = (
+            shared.stacked.into_data().try_into_vec().unwrap(),
+            separate.stacked.into_data().try_into_vec().unwrap(),
+        );
+        assert_eq!(a.len(), 2 * 5 * 72 * 88);
+        assert!(a.iter().zip(&b).all(|(x, y)| x.to_bits() == y.to_bits()));
+        // The two kernels differ, so the maps must too: the second sample saw its own kernel.
+        let half = a.len() / 2;
+        assert!(a[..half].iter().zip(&a[half..]).any(|(x, y)| x != y));
     }
 }

@@ -15,7 +15,7 @@ pub use bf16::Bf16Instructions;
 pub use gelu_grn::gelu_grn;
 pub use upsampler::PoseHeads;
 
-pub(crate) use backbone::{CpuBackbone, correlate};
+pub(crate) use backbone::{CpuBackbone, CpuFeatures, correlate};
 pub(crate) use ops::{BufferPool, converted};
 pub(crate) use template::encode_templates;
 pub(crate) use upsampler::{CpuUpsampler, Patch, UpsamplerTrace};
