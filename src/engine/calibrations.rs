@@ -3,7 +3,7 @@
 //! Only the points and unit are stored; the map is fitted again from them when used (a few
 //! microseconds), so what is stored is exactly what the client sent.
 
-use super::registry::{check_id, page_after, page_size};
+use super::registry::{check_id, into_page, page_after, page_size};
 use super::store::{CalibrationRecord, PutOutcome};
 use super::{Engine, EngineError};
 use crate::world::{CalibrationSpec, WorldCalibration};
@@ -70,22 +70,11 @@ impl Engine {
     ) -> Result<(Vec<CalibrationRecord>, String), EngineError> {
         let size = page_size(page_size_asked)?;
         let after = page_after(page_token)?;
-        let mut page = self
+        let page = self
             .store
             .list_calibrations(after.as_deref(), size + 1)
             .await?;
-        let next = if page.len() > size {
-            page.truncate(size);
-            hex::encode(
-                page.last()
-                    .expect("non-empty page")
-                    .calibration_id
-                    .as_bytes(),
-            )
-        } else {
-            String::new()
-        };
-        Ok((page, next))
+        Ok(into_page(page, size, |record| &record.calibration_id))
     }
 
     /// `false` when it was not registered.

@@ -138,14 +138,8 @@ impl Engine {
         let page_size = page_size(asked_page_size)?;
         let after = page_after(page_token)?;
         // One more than the page: whether a next page exists.
-        let mut page = self.store.list(after.as_deref(), page_size + 1).await?;
-        let next = if page.len() > page_size {
-            page.truncate(page_size);
-            hex::encode(page.last().expect("non-empty page").template_id.as_bytes())
-        } else {
-            String::new()
-        };
-        Ok((page, next))
+        let page = self.store.list(after.as_deref(), page_size + 1).await?;
+        Ok(into_page(page, page_size, |meta| &meta.template_id))
     }
 
     /// Removes a template from the store and the cache. `false` when it was not registered.
@@ -249,6 +243,21 @@ pub(super) fn page_size(asked: usize) -> Result<usize, EngineError> {
         ))),
         n => Ok(n),
     }
+}
+
+/// A listing read with one item more than `size` → the page and the token of the next one
+/// (hex of the page's last ID; empty when this is the last page).
+pub(super) fn into_page<T>(
+    mut items: Vec<T>,
+    size: usize,
+    id: impl Fn(&T) -> &str,
+) -> (Vec<T>, String) {
+    if items.len() <= size {
+        return (items, String::new());
+    }
+    items.truncate(size);
+    let next = hex::encode(id(items.last().expect("a non-empty page")).as_bytes());
+    (items, next)
 }
 
 /// Where a listing's page starts: after the ID its token (hex of the last ID) names.
