@@ -487,6 +487,59 @@ fn origins_and_calibrations_from_the_command_line() {
     assert!(pose["world_x"].is_number(), "{pose}");
 }
 
+/// Several `--template`s in one call: each pose names its template, the present one is found
+/// where it was cut, and an absent one reports nothing at the default min_score.
+#[test]
+fn several_templates_are_found_in_one_call() {
+    let tmp = tempfile::tempdir().unwrap();
+    write_blob_pair(tmp.path());
+    let path = |name: &str| tmp.path().join(name).display().to_string();
+    // A template from elsewhere: stripes the disc image does not hold.
+    image::RgbImage::from_fn(24, 24, |x, y| {
+        let v = if (x / 3 + y / 5) % 2 == 0 { 30 } else { 220 };
+        image::Rgb([v, 255 - v, v / 2])
+    })
+    .save(path("absent.png"))
+    .unwrap();
+    let (present, absent, search) = (path("template.png"), path("absent.png"), path("image.png"));
+    let (code, stdout, stderr) = posematch(&[
+        "match",
+        "--template",
+        &absent,
+        "--template",
+        &present,
+        "--image",
+        &search,
+    ]);
+    assert_eq!(code, 0, "{stderr}");
+    let answer: Value = serde_json::from_str(&stdout).unwrap();
+    assert_eq!(answer["templates"], serde_json::json!([absent, present]));
+    let poses = answer["poses"].as_array().unwrap();
+    assert!(!poses.is_empty(), "{stdout}");
+    assert!(
+        poses.iter().all(|p| p["template"] == present.as_str()),
+        "{stdout}"
+    );
+    assert!(
+        (poses[0]["x"].as_f64().unwrap() - 51.5).abs() < 0.5,
+        "{stdout}"
+    );
+    // A mask or an origin belongs to one template.
+    let (code, _, stderr) = posematch(&[
+        "match",
+        "--template",
+        &absent,
+        "--template",
+        &present,
+        "--image",
+        &search,
+        "--template-origin",
+        "0,0",
+    ]);
+    assert_eq!(code, 2, "{stderr}");
+    assert!(stderr.contains("single --template"), "{stderr}");
+}
+
 /// `--method ncc` answers batch files too (no weights needed); bad lines get their error.
 #[test]
 fn classical_matcher_runs_in_batch_mode() {

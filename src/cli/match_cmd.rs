@@ -10,7 +10,7 @@ use clap::Args;
 use serde_json::{Value, json};
 
 use super::{CliError, ModelArgs, load_model, read_image, read_template};
-use crate::geometry::{TemplateFrame, TemplateOrigin};
+use crate::geometry::{Pose, TemplateFrame, TemplateOrigin};
 use crate::imaging::{GrayImage32, RgbImage32};
 use crate::matcher::{
     AngleRange, EncodedTemplate, MatchOptions, Matcher, Method, ScaleRange, TemplateMask,
@@ -21,9 +21,11 @@ use crate::world::WorldCalibration;
 #[derive(Args, Debug)]
 pub struct MatchArgs {
     /// Template image (PNG, JPEG, BMP, TIFF, PNM). Transparent pixels of a template with an
-    /// alpha channel are ignored, as with --template-mask.
+    /// alpha channel are ignored, as with --template-mask. Repeat it to find several templates
+    /// in one call (the image is read once; each pose names its template; --max-instances
+    /// applies per template).
     #[arg(long, required_unless_present = "pairs", conflicts_with = "pairs")]
-    pub template: Option<PathBuf>,
+    pub template: Vec<PathBuf>,
     /// Mask of the template's size: black (0) pixels are ignored by every score and the
     /// refinement (a date code, a serial number), any other value is used.
     #[arg(long, requires = "template")]
@@ -176,37 +178,84 @@ pub fn run(args: MatchArgs) -> Result<(), CliError> {
         }
         return run_pairs(matcher.as_ref(), pairs, out, &options, calibration.as_ref());
     }
-    let (Some(template_path), Some(image_path)) = (&args.template, &args.image) else {
+    let (false, Some(image_path)) = (args.template.is_empty(), &args.image) else {
         return Err(CliError::Usage(
             "give --template and --image, or --pairs and --out".into(),
         ));
     };
-    let (template, mask) = read_template(template_path, args.template_mask.as_deref())?;
-    let origin = origin_of(&template, args.template_origin)
-        .map_err(|m| CliError::Usage(format!("--template-origin: {m}")))?;
-    let frame = TemplateFrame::new(template.width, template.height, origin);
+    if args.template.len() > 1 && (args.template_mask.is_some() || args.template_origin.is_some()) {
+        return Err(CliError::Usage(
+            "--template-mask and --template-origin describe one template: give a single --template with them (or an alpha channel for each template's mask)".into(),
+        ));
+    }
+    let mut templates = Vec::with_capacity(args.template.len());
+    for path in &args.template {
+        let (template, mask) = read_template(path, args.template_mask.as_deref())?;
+        let origin = origin_of(&template, args.template_origin)
+            .map_err(|m| CliError::Usage(format!("--template-origin: {m}")))?;
+        let frame = TemplateFrame::new(template.width, template.height, origin);
+        templates.push((template, mask, frame));
+    }
     let image = read_image(image_path)?;
-    let (poses, timed_out, ms) = if args.method == Method::Ncc {
+    // Every pose with the index of its template.
+    let (mut poses, timed_out, ms): (Vec<(usize, Pose)>, bool, f64) = if args.method == Method::Ncc
+    {
         let start = Instant::now();
-        let poses = ncc_answer(&template, mask.as_ref(), &image, &options)?;
+        let mut poses = Vec::new();
+        for (index, (template, mask, _)) in templates.iter().enumerate() {
+            let found = ncc_answer(template, mask.as_ref(), &image, &options)?;
+            poses.extend(found.into_iter().map(|pose| (index, pose)));
+        }
         (poses, false, start.elapsed().as_secs_f64() * 1e3)
     } else {
         let matcher = load_model(&args.model)?;
         let start = Instant::now();
-        let encoded = matcher.encode_masked_template(&template, mask.as_ref())?;
-        let outcome = matcher.match_one(&encoded, &image, &options)?;
-        (
-            outcome.poses,
-            outcome.timed_out,
-            start.elapsed().as_secs_f64() * 1e3,
-        )
+        let mut encoded = Vec::with_capacity(templates.len());
+        for (template, mask, frame) in &templates {
+            let mut one = matcher.encode_masked_template(template, mask.as_ref())?;
+            one.origin = frame.origin;
+            encoded.push(one);
+        }
+        let refs: Vec<&EncodedTemplate> = encoded.iter().collect();
+        let mut poses = Vec::new();
+        let mut timed_out = false;
+        for (index, outcome) in matcher
+            .match_templates(&refs, &image, &options)
+            .into_iter()
+            .enumerate()
+        {
+            let outcome = outcome?;
+            timed_out |= outcome.timed_out;
+            poses.extend(outcome.poses.into_iter().map(|pose| (index, pose)));
+        }
+        (poses, timed_out, start.elapsed().as_secs_f64() * 1e3)
     };
+    poses.sort_by(|a, b| b.1.score.total_cmp(&a.1.score));
     if let Some(overlay) = &args.overlay {
-        super::overlay::save_overlay(&image, &poses, template.width, template.height, overlay)?;
+        let drawn: Vec<_> = poses
+            .iter()
+            .map(|(index, pose)| {
+                let frame = &templates[*index].2;
+                (*pose, (frame.width, frame.height))
+            })
+            .collect();
+        super::overlay::save_overlay(&image, &drawn, overlay)?;
     }
-    let poses = poses_json(&poses, &frame, calibration.as_ref());
+    let poses: Vec<Value> = poses
+        .iter()
+        .map(|(index, pose)| {
+            let mut value = poses_json(
+                std::slice::from_ref(pose),
+                &templates[*index].2,
+                calibration.as_ref(),
+            )
+            .pop()
+            .expect("one pose in, one out");
+            value["template"] = json!(args.template[*index]);
+            value
+        })
+        .collect();
     let mut answer = json!({
-        "template": template_path,
         "image": image_path,
         "image_width": image.width,
         "image_height": image.height,
@@ -214,6 +263,10 @@ pub fn run(args: MatchArgs) -> Result<(), CliError> {
         "timed_out": timed_out,
         "ms": round3(ms),
     });
+    match args.template.as_slice() {
+        [one] => answer["template"] = json!(one),
+        several => answer["templates"] = json!(several),
+    }
     if let Some(calibration) = &calibration {
         answer["calibration"] = calibration_json(calibration);
     }

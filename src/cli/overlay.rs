@@ -15,11 +15,10 @@ const BOX: Rgb<u8> = Rgb([0, 230, 0]);
 const ARROW: Rgb<u8> = Rgb([255, 40, 40]);
 const LABEL: Rgb<u8> = Rgb([255, 255, 0]);
 
+/// `poses` with the size (width, height) of the template each one is of.
 pub fn save_overlay(
     image: &RgbImage32,
-    poses: &[Pose],
-    template_width: u32,
-    template_height: u32,
+    poses: &[(Pose, (u32, u32))],
     path: &Path,
 ) -> Result<(), CliError> {
     let mut canvas = RgbImage::from_fn(image.width, image.height, |x, y| {
@@ -33,8 +32,8 @@ pub fn save_overlay(
     });
     // Thicker strokes on large frames so the drawing stays visible when scaled down.
     let thickness = (image.width.max(image.height) / 600).max(1) as i32;
-    let (tw, th) = (template_width as f32, template_height as f32);
-    for pose in poses {
+    for (pose, (template_width, template_height)) in poses {
+        let (tw, th) = (*template_width as f32, *template_height as f32);
         let corners = pose.corners(tw, th);
         for i in 0..4 {
             thick_line(

@@ -297,6 +297,31 @@ impl Matcher {
         .expect("one job in, one answer out")
     }
 
+    /// Finds each of `templates` in one `image`: one job per template, sharing the image and
+    /// the time limit (counted from now). Same-sized network pieces are batched together, and
+    /// consecutive pieces of identical input (templates of the same area get the same scale
+    /// plan) run the search backbone once.
+    pub fn match_templates(
+        &self,
+        templates: &[&EncodedTemplate],
+        image: &RgbImage32,
+        options: &ValidOptions,
+    ) -> Vec<Result<MatchOutcome, MatchError>> {
+        let answer_by = options
+            .timeout_ms
+            .map(|ms| Instant::now() + std::time::Duration::from_millis(u64::from(ms)));
+        let jobs: Vec<MatchJob> = templates
+            .iter()
+            .map(|&template| MatchJob {
+                template,
+                image,
+                options,
+                answer_by,
+            })
+            .collect();
+        self.match_many(&jobs)
+    }
+
     /// Matches several independent jobs, batching same-sized network pieces together.
     pub fn match_many(&self, jobs: &[MatchJob]) -> Vec<Result<MatchOutcome, MatchError>> {
         self.match_many_wanted(jobs, &|_| true)
