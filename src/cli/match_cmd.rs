@@ -244,13 +244,7 @@ pub fn run(args: MatchArgs) -> Result<(), CliError> {
     let poses: Vec<Value> = poses
         .iter()
         .map(|(index, pose)| {
-            let mut value = poses_json(
-                std::slice::from_ref(pose),
-                &templates[*index].2,
-                calibration.as_ref(),
-            )
-            .pop()
-            .expect("one pose in, one out");
+            let mut value = pose_json(pose, &templates[*index].2, calibration.as_ref());
             value["template"] = json!(args.template[*index]);
             value
         })
@@ -284,7 +278,7 @@ fn ncc_answer(
     mask: Option<&TemplateMask>,
     image: &RgbImage32,
     options: &MatchOptions,
-) -> Result<Vec<crate::geometry::Pose>, crate::matcher::MatchError> {
+) -> Result<Vec<Pose>, crate::matcher::MatchError> {
     crate::matcher::check_pair_sizes(template.width, template.height, image.width, image.height)?;
     let gray = GrayImage32::from_rgb(template);
     let gray = match mask {
@@ -308,32 +302,39 @@ fn ncc_answer(
     ))
 }
 
-/// Poses as the CLI prints them: the pose's fields, its `transform` (the 2x3 matrix from
-/// template pixels to image pixels, [`crate::geometry::Pose::transform`]), where the
-/// template's reference point lands (`origin_x`, `origin_y`) and, with a calibration, where
-/// that lies in the world (`world_x`, `world_y`, `world_angle_deg`).
+/// Poses as the CLI prints them ([`pose_json`]).
 fn poses_json(
-    poses: &[crate::geometry::Pose],
+    poses: &[Pose],
     template: &TemplateFrame,
     calibration: Option<&WorldCalibration>,
 ) -> Vec<Value> {
     poses
         .iter()
-        .map(|pose| {
-            let mut value = serde_json::to_value(pose).expect("a pose is plain numbers");
-            value["transform"] = json!(template.transform(pose));
-            let (origin_x, origin_y) = template.origin_in_image(pose);
-            value["origin_x"] = json!(origin_x);
-            value["origin_y"] = json!(origin_y);
-            if let Some(calibration) = calibration {
-                let world = calibration.place(pose, template);
-                value["world_x"] = json!(world.x);
-                value["world_y"] = json!(world.y);
-                value["world_angle_deg"] = json!(world.angle_deg);
-            }
-            value
-        })
+        .map(|pose| pose_json(pose, template, calibration))
         .collect()
+}
+
+/// A pose as the CLI prints it: the pose's fields, its `transform` (the 2x3 matrix from
+/// template pixels to image pixels, [`Pose::transform`]), where the template's reference point
+/// lands (`origin_x`, `origin_y`) and, with a calibration, where that lies in the world
+/// (`world_x`, `world_y`, `world_angle_deg`).
+fn pose_json(
+    pose: &Pose,
+    template: &TemplateFrame,
+    calibration: Option<&WorldCalibration>,
+) -> Value {
+    let mut value = serde_json::to_value(pose).expect("a pose is plain numbers");
+    value["transform"] = json!(template.transform(pose));
+    let (origin_x, origin_y) = template.origin_in_image(pose);
+    value["origin_x"] = json!(origin_x);
+    value["origin_y"] = json!(origin_y);
+    if let Some(calibration) = calibration {
+        let world = calibration.place(pose, template);
+        value["world_x"] = json!(world.x);
+        value["world_y"] = json!(world.y);
+        value["world_angle_deg"] = json!(world.angle_deg);
+    }
+    value
 }
 
 fn ms_since(start: Instant) -> f64 {
