@@ -1,32 +1,56 @@
 #!/usr/bin/env bash
-# One bounded GPU call: measure, then fine-tune the shipped default on elongated and
-# wide-scale pairs, writing the run into OUT (checkpoint.pt, weights.pth, log.txt).
+# Bounded GPU calls: measure, then fine-tune the shipped default, writing what comes back into
+# OUT (log.txt, profile.txt and the weights of every save, weights-step<N>.pth: the last is the
+# run's end).
 #
-#   training/gpu_finetune.sh OUT MINUTES
+#   training/gpu_finetune.sh OUT MINUTES [SCHEDULE_MINUTES]     first call: measure and train
+#   RESUME=1 training/gpu_finetune.sh OUT MINUTES               a later call on the warm machine
+#
+# The first call profiles three eager steps (profile.txt), measures eager and compiled steps
+# (batch 1024, 160x160), trains MINUTES with the faster, and sets --steps to what the measured
+# rate reaches in SCHEDULE_MINUTES (default MINUTES) so that the cosine schedule ends at its
+# floor when the last call's time is up. The run itself lives in data/run (checkpoint.pt every
+# 2 minutes), so a RESUME call on the same warm machine continues it.
 #
 # Needs training/data/corpus (make_corpus.py) and training/data/init.safetensors
-# (`posematch weights export --out training/data/init.safetensors`) beside it. The batch is the
-# faster of 512 and 1024 at 160x160 by measure.py; --steps is what the measured rate reaches in
-# MINUTES, so that the cosine schedule ends at its floor when the time is up.
+# (`posematch weights export --out training/data/init.safetensors`) beside it. The mix is set
+# by LEVEL (default S1.5), ELONGATED (share, 0.5), ASPECT (largest sx/sy, 2.2), LR (3e-4),
+# WARMUP (150), BATCH (1024), MODES (eager,compile).
 set -u
 out=${1:?OUT folder}
 minutes=${2:?training minutes}
+schedule=${3:-$minutes}
 here=$(cd "$(dirname "$0")" && pwd)
 cd "$here"
-mkdir -p "$out"
+mkdir -p "$out" data/run
 export PYTHONUNBUFFERED=1
-nvidia-smi --query-gpu=name,memory.total,clocks.sm --format=csv | tee "$out/gpu.txt"
+log="$out/log.txt"
+level=${LEVEL:-S1.5} elongated=${ELONGATED:-0.5} aspect=${ASPECT:-2.2}
+lr=${LR:-3e-4} warmup=${WARMUP:-150} batch=${BATCH:-1024} modes=${MODES:-eager,compile}
 
-timeout 90 python3 measure.py --corpus data/corpus --batches 512,1024 --sizes 160 \
-  --choose "$out/choose.txt" 2>&1 | tee "$out/measure.txt"
-if read -r batch size rate < "$out/choose.txt" 2>/dev/null && [ -n "${rate:-}" ]; then :; else
-  batch=512 size=160 rate=1888   # the last run's measured rate, should measuring fail
+if [ -z "${RESUME:-}" ]; then
+  nvidia-smi --query-gpu=name,memory.total,clocks.sm --format=csv 2>&1 | tee "$log"
+  timeout 240 python3 measure.py --corpus data/corpus --batches "$batch" --sizes 160 \
+    --modes "$modes" --profile "$out/profile.txt" --choose data/run/choose.txt 2>&1 | tee -a "$log"
+  if read -r chosen_batch size rate mode < data/run/choose.txt 2>/dev/null && [ -n "${mode:-}" ]; then :; else
+    chosen_batch=$batch size=160 rate=2192 mode=eager   # the last run's measured rate, should measuring fail
+  fi
+  rate=${rate%.*}
+  steps=$(awk -v r="$rate" -v m="$schedule" -v b="$chosen_batch" 'BEGIN { printf "%d", r * m * 60 / b }')
+  echo "$chosen_batch $size $steps $mode" > data/run/plan.txt
+  echo "batch $chosen_batch crop $size rate $rate pairs/s ($mode) -> steps $steps over $schedule min" | tee -a "$log"
+  start=(--init-weights data/init.safetensors)
+else
+  read -r chosen_batch size steps mode < data/run/plan.txt
+  echo "resume: batch $chosen_batch crop $size steps $steps ($mode)" | tee -a "$log"
+  start=(--resume)
 fi
-rate=${rate%.*}
-steps=$(( rate * ${minutes%.*} * 60 / batch ))
-echo "batch $batch crop $size rate $rate pairs/s -> steps $steps" | tee -a "$out/measure.txt"
+compile=()
+[ "$mode" = compile ] && compile=(--compile)
 
-python3 train.py --corpus data/corpus --out "$out/run" --init-weights data/init.safetensors \
-  --elongated-share 0.5 --aspect-max 2.5 --level S1.5,S2.5 \
-  --steps "$steps" --batch "$batch" --search-size "$size" --lr 5e-4 --warmup 150 \
-  --minutes "$minutes" --save-every 2 --validate-every 400 --log-every 50
+python3 train.py --corpus data/corpus --out data/run "${start[@]}" "${compile[@]}" \
+  --elongated-share "$elongated" --aspect-max "$aspect" --level "$level" \
+  --steps "$steps" --batch "$chosen_batch" --search-size "$size" --lr "$lr" --warmup "$warmup" \
+  --minutes "$minutes" --save-every 2 --snapshots "$out" --validate-every 400 --log-every 50 \
+  2>&1 | tee -a "$log"
+ls -la "$out"

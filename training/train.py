@@ -11,6 +11,7 @@ there with the same schedule. See training/README.md for the whole sequence.
 import argparse
 import math
 import os
+import shutil
 import sys
 import time
 from pathlib import Path
@@ -101,6 +102,9 @@ def parse_args(argv=None):
     a.add_argument("--compile", action="store_true", help="torch.compile the model")
     a.add_argument("--save-every", type=float, default=2.0,
                    help="minutes between checkpoints (a run killed mid-way loses at most this much)")
+    a.add_argument("--snapshots",
+                   help="also keep each saved weights.pth as SNAPSHOTS/weights-step<N>.pth (a "
+                        "learning curve to evaluate, and a choice on a tuning set afterwards)")
     a.add_argument("--log-every", type=int, default=100)
     a.add_argument("--validate-every", type=int, default=1000)
     a.add_argument("--validation-pairs", type=int, default=256)
@@ -247,6 +251,9 @@ def train(args):
             "args": vars(args),
         }, checkpoint)
         export_weights(model, out / "weights.pth")
+        if args.snapshots:
+            Path(args.snapshots).mkdir(parents=True, exist_ok=True)
+            shutil.copyfile(out / "weights.pth", Path(args.snapshots) / f"weights-step{step}.pth")
 
     model.train()
     window_start, window_pairs = time.monotonic(), 0
