@@ -17,7 +17,9 @@
 //! the arithmetic of the network's products (default `auto`, as the CLI; `f32,bf16` compares
 //! both where the CPU has bf16 instructions, AMX tiles or AVX-512 BF16; the table names the one
 //! that ran);
-//! `POSEMATCH_BENCH_CLASSICAL=0` skips the classical matcher (24 s, 14 GB).
+//! `POSEMATCH_BENCH_CLASSICAL=0` skips the classical matcher (24 s, 14 GB);
+//! `POSEMATCH_BENCH_WEIGHTS=FILE` adds a candidate weights file (`candidate` in the table), to
+//! compare a training run with the default before it replaces it.
 
 use std::path::PathBuf;
 use std::time::Instant;
@@ -134,6 +136,11 @@ fn main() {
         PathBuf::from(env!("CARGO_MANIFEST_DIR")).join("../shared/reference/tdcm-official.pth");
     if let Ok(model) = load_weights(&official, &device) {
         models.push(("official", model));
+    }
+    if let Ok(candidate) = std::env::var("POSEMATCH_BENCH_WEIGHTS") {
+        let model = load_weights(PathBuf::from(&candidate).as_path(), &device)
+            .unwrap_or_else(|e| panic!("POSEMATCH_BENCH_WEIGHTS={candidate}: {e}"));
+        models.push(("candidate", model));
     }
     // `classical` alone runs only the classical matcher on the large frame.
     let classical_only = filter.as_deref() == Some("classical");

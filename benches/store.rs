@@ -60,6 +60,7 @@ fn match_request(id: &str, frame: &[u8]) -> proto::MatchRequest {
         image: encoded(frame.to_vec()),
         options: None,
         request_id: String::new(),
+        template_ids: Vec::new(),
     }
 }
 

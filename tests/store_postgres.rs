@@ -45,6 +45,7 @@ fn probe(id: &str, frame: &[u8]) -> proto::MatchRequest {
             ..Default::default()
         }),
         request_id: String::new(),
+        template_ids: Vec::new(),
     }
 }
 

@@ -9,8 +9,10 @@
 # The first call profiles three eager steps (profile.txt), measures eager and compiled steps
 # (batch 1024, 160x160), trains MINUTES with the faster, and sets --steps to what the measured
 # rate reaches in SCHEDULE_MINUTES (default MINUTES) so that the cosine schedule ends at its
-# floor when the last call's time is up. The run itself lives in data/run (checkpoint.pt every
-# 2 minutes), so a RESUME call on the same warm machine continues it.
+# floor when the last call's time is up. The run itself lives in RUN (default
+# /tmp/posematch-gpu-run: checkpoint.pt every 2 minutes), outside the repository, so a RESUME call
+# on the same warm machine continues it: a path named in the device tool's `carry` is replaced
+# by this machine's copy on every call, which lost a run kept in training/data/run (2026-11-26).
 #
 # Needs training/data/corpus (make_corpus.py) and training/data/init.safetensors
 # (`posematch weights export --out training/data/init.safetensors`) beside it. The mix is set
@@ -22,33 +24,35 @@ minutes=${2:?training minutes}
 schedule=${3:-$minutes}
 here=$(cd "$(dirname "$0")" && pwd)
 cd "$here"
-mkdir -p "$out" data/run
+run=${RUN:-/tmp/posematch-gpu-run}
+mkdir -p "$out" "$run"
 export PYTHONUNBUFFERED=1
 log="$out/log.txt"
 level=${LEVEL:-S1.5} elongated=${ELONGATED:-0.5} aspect=${ASPECT:-2.2}
 lr=${LR:-3e-4} warmup=${WARMUP:-150} batch=${BATCH:-1024} modes=${MODES:-eager,compile}
 
 if [ -z "${RESUME:-}" ]; then
+  rm -rf "$run" && mkdir -p "$run"   # a first call starts a new run
   nvidia-smi --query-gpu=name,memory.total,clocks.sm --format=csv 2>&1 | tee "$log"
   timeout 240 python3 measure.py --corpus data/corpus --batches "$batch" --sizes 160 \
-    --modes "$modes" --profile "$out/profile.txt" --choose data/run/choose.txt 2>&1 | tee -a "$log"
-  if read -r chosen_batch size rate mode < data/run/choose.txt 2>/dev/null && [ -n "${mode:-}" ]; then :; else
+    --modes "$modes" --profile "$out/profile.txt" --choose "$run"/choose.txt 2>&1 | tee -a "$log"
+  if read -r chosen_batch size rate mode < "$run"/choose.txt 2>/dev/null && [ -n "${mode:-}" ]; then :; else
     chosen_batch=$batch size=160 rate=2192 mode=eager   # the last run's measured rate, should measuring fail
   fi
   rate=${rate%.*}
   steps=$(awk -v r="$rate" -v m="$schedule" -v b="$chosen_batch" 'BEGIN { printf "%d", r * m * 60 / b }')
-  echo "$chosen_batch $size $steps $mode" > data/run/plan.txt
+  echo "$chosen_batch $size $steps $mode" > "$run"/plan.txt
   echo "batch $chosen_batch crop $size rate $rate pairs/s ($mode) -> steps $steps over $schedule min" | tee -a "$log"
   start=(--init-weights data/init.safetensors)
 else
-  read -r chosen_batch size steps mode < data/run/plan.txt
+  read -r chosen_batch size steps mode < "$run"/plan.txt
   echo "resume: batch $chosen_batch crop $size steps $steps ($mode)" | tee -a "$log"
   start=(--resume)
 fi
 compile=()
 [ "$mode" = compile ] && compile=(--compile)
 
-python3 train.py --corpus data/corpus --out data/run "${start[@]}" "${compile[@]}" \
+python3 train.py --corpus data/corpus --out "$run" "${start[@]}" "${compile[@]}" \
   --elongated-share "$elongated" --aspect-max "$aspect" --level "$level" \
   --steps "$steps" --batch "$chosen_batch" --search-size "$size" --lr "$lr" --warmup "$warmup" \
   --minutes "$minutes" --save-every 2 --snapshots "$out" --validate-every 400 --log-every 50 \

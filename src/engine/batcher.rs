@@ -89,7 +89,8 @@ impl MatchPipeline for Matcher {
 /// One search waiting for the model.
 pub struct MatchWork {
     pub template: Arc<EncodedTemplate>,
-    pub image: RgbImage32,
+    /// Shared by the searches of one request for several templates.
+    pub image: Arc<RgbImage32>,
     pub options: ValidOptions,
     /// Dropped unanswered once this has passed.
     pub deadline: Option<Instant>,
@@ -412,7 +413,7 @@ fn run_batch(pipeline: &impl MatchPipeline, live: Vec<(MatchWork, Instant)>, met
         .iter()
         .map(|(work, _)| MatchJob {
             template: &work.template,
-            image: &work.image,
+            image: work.image.as_ref(),
             options: &work.options,
             answer_by: work.answer_by,
         })
@@ -589,7 +590,7 @@ mod tests {
             self.batcher
                 .submit(MatchWork {
                     template: self.template.clone(),
-                    image: image(width),
+                    image: Arc::new(image(width)),
                     options: ValidOptions::default(),
                     deadline,
                     answer_by: None,

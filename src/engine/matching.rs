@@ -1,11 +1,15 @@
-//! Matching a registered template: the image cropped to its region of interest, sizes checked,
+//! Matching registered templates: the image cropped to its region of interest, sizes checked,
 //! the work queued for the batching model thread (or, for the classical method, run on a
-//! blocking thread one search at a time), poses moved back into the full image.
+//! blocking thread one search at a time), poses moved back into the full image. Several
+//! templates in one request share the decoded image and are queued together, so the model
+//! thread batches them (and runs the search backbone once for templates of equal area).
 
 use std::sync::Arc;
 use std::time::Instant;
 
 use tokio::sync::oneshot;
+
+use futures_util::future::try_join_all;
 
 use super::batcher::{BatchError, MatchWork, SubmitError};
 use super::{Engine, EngineError};
@@ -49,7 +53,31 @@ impl Engine {
         deadline: Option<Instant>,
         answer_by: Option<Instant>,
     ) -> Result<MatchAnswer, EngineError> {
-        let template = self.encoded_template(template_id).await?;
+        let ids = [template_id.to_owned()];
+        let mut answers = self
+            .match_templates(&ids, image, options, roi, deadline, answer_by)
+            .await?;
+        Ok(answers.pop().expect("one template in, one answer out"))
+    }
+
+    /// [`Engine::match_image`] for each of `template_ids` (1..=[`MAX_TEMPLATES_PER_MATCH`],
+    /// no ID twice) in one image: one answer per template, in their order, each with the same
+    /// options (`max_instances` counts per template). Every ID is looked up before any work
+    /// starts, so an unknown one fails the request without a search.
+    pub async fn match_templates(
+        &self,
+        template_ids: &[String],
+        image: RgbImage32,
+        options: ValidOptions,
+        roi: Option<Roi>,
+        deadline: Option<Instant>,
+        answer_by: Option<Instant>,
+    ) -> Result<Vec<MatchAnswer>, EngineError> {
+        check_template_ids(template_ids)?;
+        let mut templates = Vec::with_capacity(template_ids.len());
+        for id in template_ids {
+            templates.push(self.encoded_template(id).await?);
+        }
         let (image, offset) = match roi {
             None => (image, (0.0, 0.0)),
             Some(roi) => {
@@ -58,27 +86,45 @@ impl Engine {
                 (cropped, (roi.x as f32, roi.y as f32))
             }
         };
-        crate::matcher::check_pair_sizes(
-            template.width,
-            template.height,
-            image.width,
-            image.height,
-        )?;
-        let mut answer = match options.method {
+        for template in &templates {
+            crate::matcher::check_pair_sizes(
+                template.width,
+                template.height,
+                image.width,
+                image.height,
+            )?;
+        }
+        let image = Arc::new(image);
+        let mut answers = match options.method {
+            // All searches are queued before any is awaited, so they meet in one batch.
             Method::Tdcm => {
-                self.match_network(template, image, options, deadline, answer_by)
-                    .await?
+                try_join_all(templates.into_iter().map(|template| {
+                    self.match_network(
+                        template,
+                        Arc::clone(&image),
+                        options.clone(),
+                        deadline,
+                        answer_by,
+                    )
+                }))
+                .await?
             }
             Method::Ncc => {
-                self.match_classical(template, image, options, deadline)
-                    .await?
+                let mut answers = Vec::with_capacity(templates.len());
+                for template in templates {
+                    answers.push(
+                        self.match_classical(template, Arc::clone(&image), &options, deadline)
+                            .await?,
+                    );
+                }
+                answers
             }
         };
-        for pose in &mut answer.poses {
+        for pose in answers.iter_mut().flat_map(|answer| &mut answer.poses) {
             pose.x += offset.0;
             pose.y += offset.1;
         }
-        Ok(answer)
+        Ok(answers)
     }
 
     /// The network's path: its compute budget checked, then queued for the batching model
@@ -86,7 +132,7 @@ impl Engine {
     async fn match_network(
         &self,
         template: Arc<EncodedTemplate>,
-        image: RgbImage32,
+        image: Arc<RgbImage32>,
         options: ValidOptions,
         deadline: Option<Instant>,
         answer_by: Option<Instant>,
@@ -139,8 +185,8 @@ impl Engine {
     async fn match_classical(
         &self,
         template: Arc<EncodedTemplate>,
-        image: RgbImage32,
-        options: ValidOptions,
+        image: Arc<RgbImage32>,
+        options: &ValidOptions,
         deadline: Option<Instant>,
     ) -> Result<MatchAnswer, EngineError> {
         let frame = template.frame();
@@ -149,8 +195,9 @@ impl Engine {
             template.height,
             image.width,
             image.height,
-            &options,
+            options,
         )?;
+        let options = options.clone();
         let queued = Instant::now();
         let permit = self.classical.acquire();
         let _permit = match deadline {
@@ -183,6 +230,37 @@ impl Engine {
             template: frame,
         })
     }
+}
+
+/// The most templates one match request may name: each is a full search of the image.
+pub const MAX_TEMPLATES_PER_MATCH: usize = 16;
+
+fn check_template_ids(ids: &[String]) -> Result<(), EngineError> {
+    if ids.is_empty() {
+        return Err(EngineError::InvalidArgument(
+            "no template named; give the ID of a registered template".into(),
+        ));
+    }
+    if ids.len() > MAX_TEMPLATES_PER_MATCH {
+        return Err(EngineError::InvalidArgument(format!(
+            "{} templates named; one request may search for at most {MAX_TEMPLATES_PER_MATCH}",
+            ids.len()
+        )));
+    }
+    for (i, id) in ids.iter().enumerate() {
+        if id.is_empty() {
+            return Err(EngineError::InvalidArgument(
+                "a template ID is empty; give the ID of a registered template".into(),
+            ));
+        }
+        if ids[..i].contains(id) {
+            return Err(EngineError::InvalidArgument(format!(
+                "template {} is named twice; name each template once",
+                super::quoted(id)
+            )));
+        }
+    }
+    Ok(())
 }
 
 fn check_roi(roi: &Roi, width: u32, height: u32) -> Result<(), EngineError> {

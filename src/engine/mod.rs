@@ -19,7 +19,7 @@ use std::time::Duration;
 
 use crate::matcher::{MatchError, Matcher};
 use batcher::{BatchLimits, Batcher, EncodeError, IDLE_RELEASE};
-pub use matching::{MatchAnswer, Roi};
+pub use matching::{MAX_TEMPLATES_PER_MATCH, MatchAnswer, Roi};
 pub use metrics::Metrics;
 pub use registry::{
     DEFAULT_PAGE_SIZE, MAX_LABEL_KEY_BYTES, MAX_LABEL_VALUE_BYTES, MAX_LABELS, MAX_PAGE_SIZE,

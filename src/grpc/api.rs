@@ -17,7 +17,7 @@ use super::convert::{
     template_info,
 };
 use super::proto::{self, pose_matcher_server::PoseMatcher};
-use crate::engine::{Engine, EngineError, Metrics, RegisteredTemplate, quoted};
+use crate::engine::{Engine, EngineError, MatchAnswer, Metrics, RegisteredTemplate, quoted};
 use crate::imaging::RgbImage32;
 use crate::matcher::{MatchOptions, TEMPLATE_LIMITS, TemplateMask, search_limits};
 
@@ -151,6 +151,22 @@ fn code_name(code: tonic::Code) -> &'static str {
     }
 }
 
+/// The templates a match request names: its `template_id`, or its `template_ids`, not both.
+fn requested_templates(request: &proto::MatchRequest) -> Result<Vec<String>, EngineError> {
+    match (request.template_id.is_empty(), request.template_ids.is_empty()) {
+        (false, true) => Ok(vec![request.template_id.clone()]),
+        (true, false) => Ok(request.template_ids.clone()),
+        (true, true) => Err(EngineError::InvalidArgument(
+            "template_id is empty; give the ID of a registered template (or several in template_ids)"
+                .into(),
+        )),
+        (false, false) => Err(EngineError::InvalidArgument(
+            "both template_id and template_ids are set; give one template_id, or all the templates in template_ids"
+                .into(),
+        )),
+    }
+}
+
 /// One match, shared by `Match` and `MatchStream`.
 async fn match_request(
     engine: &Engine,
@@ -161,11 +177,7 @@ async fn match_request(
     defaults: &MatchOptions,
 ) -> Result<proto::MatchResponse, Status> {
     let work = async {
-        if request.template_id.is_empty() {
-            return Err(EngineError::InvalidArgument(
-                "template_id is empty; give the ID of a registered template".into(),
-            ));
-        }
+        let template_ids = requested_templates(&request)?;
         let RequestedMatch {
             options,
             roi,
@@ -184,35 +196,43 @@ async fn match_request(
         let answer_by = options
             .timeout_ms
             .map(|ms| received + std::time::Duration::from_millis(u64::from(ms)));
-        let answer = engine
-            .match_image(
-                &request.template_id,
-                image,
-                options,
-                roi,
-                deadline,
-                answer_by,
-            )
+        let answers = engine
+            .match_templates(&template_ids, image, options, roi, deadline, answer_by)
             .await?;
-        let t = answer.timings;
+        // Several templates' searches ran side by side: the slowest one's times.
+        let slowest = |f: &dyn Fn(&MatchAnswer) -> f64| answers.iter().map(f).fold(0.0, f64::max);
+        let queue_ms = slowest(&|a| a.queue_ms);
+        let network_ms = slowest(&|a| a.timings.prepare_ms + a.timings.network_ms);
+        let postprocess_ms = slowest(&|a| a.timings.postprocess_ms());
+        let mut poses: Vec<proto::Pose> = answers
+            .iter()
+            .zip(&template_ids)
+            .flat_map(|(answer, id)| {
+                answer
+                    .poses
+                    .iter()
+                    .map(|pose| pose_to_proto(pose, id, &answer.template, calibration.as_ref()))
+            })
+            .collect();
+        if answers.len() > 1 {
+            poses.sort_by(|a, b| b.score.total_cmp(&a.score));
+        }
         tracing::info!(
-            batch_size = answer.batch_size,
-            poses = answer.poses.len(),
-            queue_ms = answer.queue_ms,
-            network_ms = t.prepare_ms + t.network_ms,
-            postprocess_ms = t.postprocess_ms(),
+            templates = answers.len(),
+            batch_size = answers.iter().map(|a| a.batch_size).max().unwrap_or(0),
+            poses = poses.len(),
+            queue_ms,
+            network_ms,
+            postprocess_ms,
             total_ms = received.elapsed().as_secs_f64() * 1e3,
             "matched"
         );
         Ok(proto::MatchResponse {
             request_id: request.request_id.clone(),
             template_id: request.template_id.clone(),
-            timed_out: answer.timed_out,
-            poses: answer
-                .poses
-                .iter()
-                .map(|pose| pose_to_proto(pose, &answer.template, calibration.as_ref()))
-                .collect(),
+            template_ids: request.template_ids.clone(),
+            timed_out: answers.iter().any(|a| a.timed_out),
+            poses,
             world_unit: calibration
                 .as_ref()
                 .map(|c| c.unit().to_owned())
@@ -221,9 +241,9 @@ async fn match_request(
             image_height: height,
             timings: Some(proto::Timings {
                 decode_ms: decode_ms as f32,
-                queue_ms: answer.queue_ms as f32,
-                network_ms: (t.prepare_ms + t.network_ms) as f32,
-                postprocess_ms: t.postprocess_ms() as f32,
+                queue_ms: queue_ms as f32,
+                network_ms: network_ms as f32,
+                postprocess_ms: postprocess_ms as f32,
                 total_ms: (received.elapsed().as_secs_f64() * 1e3) as f32,
             }),
         })

@@ -314,6 +314,7 @@ pub fn options_from_proto(
 /// with a calibration, where that lies in the world.
 pub fn pose_to_proto(
     pose: &Pose,
+    template_id: &str,
     template: &TemplateFrame,
     calibration: Option<&WorldCalibration>,
 ) -> proto::Pose {
@@ -333,6 +334,7 @@ pub fn pose_to_proto(
         scale_y: pose.scale_y,
         score: pose.score,
         network_score: pose.network_score,
+        template_id: template_id.to_owned(),
     }
 }
 

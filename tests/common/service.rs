@@ -119,6 +119,7 @@ pub fn match_request(id: &str, image: Vec<u8>, request_id: &str) -> proto::Match
             ..Default::default()
         }),
         request_id: request_id.into(),
+        template_ids: Vec::new(),
     }
 }
 

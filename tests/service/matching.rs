@@ -163,6 +163,7 @@ async fn the_classical_matcher_answers_over_grpc_without_the_network() {
         image: encoded(png(&scene(200, 200, 3))),
         options: Some(options),
         request_id: "ncc".into(),
+        template_ids: Vec::new(),
     };
     let answer = client
         .r#match(classical(proto::MatchOptions {
@@ -216,4 +217,118 @@ async fn the_classical_matcher_answers_over_grpc_without_the_network() {
         status.message()
     );
     drop(server);
+}
+
+#[tokio::test(flavor = "multi_thread", worker_threads = 2)]
+async fn several_templates_in_one_request_answer_each_by_name() {
+    let dir = tempfile::tempdir().unwrap();
+    let (server, mut client) = start(&settings(dir.path(), &[]), untrained_model()).await;
+    let frame = scene(200, 200, 3);
+    // Two distinct crops of one frame, and a third template from another scene.
+    let crop = |x, y| png(&image::imageops::crop_imm(&frame, x, y, 36, 40).to_image());
+    for (id, bytes) in [("left", crop(30, 40)), ("right", crop(120, 110))] {
+        client
+            .register_template(register_request(id, bytes))
+            .await
+            .unwrap();
+    }
+    client
+        .register_template(register_request("other", template_png(9)))
+        .await
+        .unwrap();
+    let several = |ids: &[&str], method: proto::Method| proto::MatchRequest {
+        template_ids: ids.iter().map(|id| id.to_string()).collect(),
+        image: encoded(png(&frame)),
+        options: Some(proto::MatchOptions {
+            method: method as i32,
+            max_instances: 1,
+            min_score: 0.01,
+            ..Default::default()
+        }),
+        request_id: "both".into(),
+        ..Default::default()
+    };
+
+    // The classical matcher finds each crop where it was cut, and names it.
+    let answer = client
+        .r#match(several(&["left", "right"], proto::Method::Ncc))
+        .await
+        .unwrap()
+        .into_inner();
+    assert_eq!(answer.template_ids, ["left", "right"]);
+    assert!(answer.template_id.is_empty());
+    let centre = |id: &str| {
+        let pose = answer
+            .poses
+            .iter()
+            .find(|p| p.template_id == id)
+            .unwrap_or_else(|| panic!("no pose of {id}: {:?}", answer.poses));
+        (pose.x, pose.y)
+    };
+    let (lx, ly) = centre("left");
+    let (rx, ry) = centre("right");
+    assert!(
+        (lx - 47.5).abs() < 0.5 && (ly - 59.5).abs() < 0.5,
+        "{lx} {ly}"
+    );
+    assert!(
+        (rx - 137.5).abs() < 0.5 && (ry - 129.5).abs() < 0.5,
+        "{rx} {ry}"
+    );
+    assert!(
+        answer.poses.windows(2).all(|w| w[0].score >= w[1].score),
+        "best score first"
+    );
+
+    // The network path answers each template as a request of its own would (same poses),
+    // though the searches ran in one batch.
+    let together = client
+        .r#match(several(&["left", "other"], proto::Method::Tdcm))
+        .await
+        .unwrap()
+        .into_inner();
+    for id in ["left", "other"] {
+        let alone = client
+            .r#match(several(&[id], proto::Method::Tdcm))
+            .await
+            .unwrap()
+            .into_inner();
+        assert!(alone.poses.iter().all(|p| p.template_id == id));
+        let mine: Vec<proto::Pose> = together
+            .poses
+            .iter()
+            .filter(|p| p.template_id == id)
+            .cloned()
+            .collect();
+        assert_same_poses(&mine, &alone.poses);
+    }
+    // A single template_id names its template in every pose too.
+    let single = client
+        .r#match(match_request("left", png(&frame), "one"))
+        .await
+        .unwrap()
+        .into_inner();
+    assert!(single.poses.iter().all(|p| p.template_id == "left"));
+
+    // Wrong lists are refused before any search, saying what to fix.
+    let refused = |request: proto::MatchRequest| {
+        let mut client = client.clone();
+        async move { client.r#match(request).await.unwrap_err() }
+    };
+    let unknown = refused(several(&["left", "nope"], proto::Method::Tdcm)).await;
+    assert_eq!(unknown.code(), Code::NotFound, "{unknown:?}");
+    let twice = refused(several(&["left", "left"], proto::Method::Tdcm)).await;
+    assert_eq!(twice.code(), Code::InvalidArgument);
+    assert!(twice.message().contains("twice"), "{}", twice.message());
+    let names: Vec<String> = (0..17).map(|i| format!("t{i}")).collect();
+    let names: Vec<&str> = names.iter().map(String::as_str).collect();
+    let many = refused(several(&names, proto::Method::Tdcm)).await;
+    assert_eq!(many.code(), Code::InvalidArgument);
+    assert!(many.message().contains("at most 16"), "{}", many.message());
+    let mut both = several(&["left"], proto::Method::Tdcm);
+    both.template_id = "right".into();
+    let both = refused(both).await;
+    assert_eq!(both.code(), Code::InvalidArgument);
+    assert!(both.message().contains("both"), "{}", both.message());
+    server.shutdown(Duration::from_secs(5)).await;
 }
