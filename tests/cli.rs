@@ -538,6 +538,48 @@ fn several_templates_are_found_in_one_call() {
     ]);
     assert_eq!(code, 2, "{stderr}");
     assert!(stderr.contains("single --template"), "{stderr}");
+
+    // Batch lines name several templates with "templates"; each pose names its own.
+    std::fs::write(
+        tmp.path().join("pairs.jsonl"),
+        [
+            r#"{"id": "both", "templates": ["absent.png", "template.png"], "image": "image.png"}"#,
+            r#"{"id": "one", "template": "template.png", "image": "image.png"}"#,
+            r#"{"id": "masked", "templates": ["absent.png", "template.png"], "image": "image.png", "template_origin": [0, 0]}"#,
+            r#"{"id": "none", "templates": [], "image": "image.png"}"#,
+            r#"{"id": "twice", "template": "template.png", "templates": ["absent.png"], "image": "image.png"}"#,
+        ]
+        .join("\n"),
+    )
+    .unwrap();
+    let results = path("results.jsonl");
+    let (code, _, stderr) = posematch(&[
+        "match",
+        "--pairs",
+        &path("pairs.jsonl"),
+        "--out",
+        &results,
+    ]);
+    assert_eq!(code, 0, "{stderr}");
+    let lines: Vec<Value> = std::fs::read_to_string(&results)
+        .unwrap()
+        .lines()
+        .map(|l| serde_json::from_str(l).unwrap())
+        .collect();
+    let both = lines[0]["poses"].as_array().expect("poses");
+    assert!(!both.is_empty(), "{:?}", lines[0]);
+    assert!(both.iter().all(|p| p["template"] == "template.png"), "{both:?}");
+    let one = lines[1]["poses"].as_array().expect("poses");
+    assert_eq!(
+        (both[0]["x"].as_f64(), both[0]["y"].as_f64()),
+        (one[0]["x"].as_f64(), one[0]["y"].as_f64()),
+        "the same search whether alone or beside another template"
+    );
+    assert!(one[0].get("template").is_none(), "{:?}", one[0]);
+    for (line, says) in [(2, "one template"), (3, "1 to 16"), (4, "not both")] {
+        let error = lines[line]["error"].as_str().unwrap_or_default();
+        assert!(error.contains(says), "line {line}: {:?}", lines[line]);
+    }
 }
 
 /// `--method ncc` answers batch files too (no weights needed); bad lines get their error.

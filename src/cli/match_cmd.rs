@@ -44,8 +44,9 @@ pub struct MatchArgs {
     #[arg(long, required_unless_present = "pairs", conflicts_with = "pairs")]
     pub image: Option<PathBuf>,
     /// Batch mode: JSONL with one `{"id", "template", "image"[, "template_mask",
-    /// "template_origin": [x, y], "max_instances"]}` per line; relative paths are relative to
-    /// this file's folder.
+    /// "template_origin": [x, y], "max_instances"]}` per line, or `"templates": [paths]` (1 to
+    /// 16) instead of `"template"` to find several in the image (each pose then names its
+    /// `"template"`); relative paths are relative to this file's folder.
     #[arg(long, requires = "out")]
     pub pairs: Option<PathBuf>,
     /// Batch mode output: one `{"id", "poses", "timed_out", "ms"}` (or `{"id", "error"}`) per
@@ -302,18 +303,6 @@ fn ncc_answer(
     ))
 }
 
-/// Poses as the CLI prints them ([`pose_json`]).
-fn poses_json(
-    poses: &[Pose],
-    template: &TemplateFrame,
-    calibration: Option<&WorldCalibration>,
-) -> Vec<Value> {
-    poses
-        .iter()
-        .map(|pose| pose_json(pose, template, calibration))
-        .collect()
-}
-
 /// A pose as the CLI prints it: the pose's fields, its `transform` (the 2x3 matrix from
 /// template pixels to image pixels, [`Pose::transform`]), where the template's reference point
 /// lands (`origin_x`, `origin_y`) and, with a calibration, where that lies in the world
@@ -387,6 +376,31 @@ fn run_pairs(
     Ok(())
 }
 
+/// A batch line's `template`, or its `templates` (1 to [`MAX_TEMPLATES_PER_LINE`]), as paths.
+fn template_paths(record: &Value, base: &Path) -> Result<Vec<PathBuf>, String> {
+    match (record.get("template"), record.get("templates")) {
+        (Some(Value::String(one)), None) => Ok(vec![base.join(one)]),
+        (None, Some(Value::Array(list)))
+            if (1..=MAX_TEMPLATES_PER_LINE).contains(&list.len()) =>
+        {
+            let paths: Option<Vec<PathBuf>> = list
+                .iter()
+                .map(|p| p.as_str().map(|p| base.join(p)))
+                .collect();
+            paths.ok_or_else(|| "`templates` must list template paths (strings)".into())
+        }
+        (None, Some(_)) => Err(format!(
+            "`templates` must be a list of 1 to {MAX_TEMPLATES_PER_LINE} template paths"
+        )),
+        (Some(_), Some(_)) => Err("give `template` or `templates`, not both".into()),
+        (Some(_), None) => Err("`template` must be a path (a string)".into()),
+        (None, None) => Err("missing string field `template` (or a list `templates`)".into()),
+    }
+}
+
+/// The most templates one batch line may name: as many as one service request may.
+const MAX_TEMPLATES_PER_LINE: usize = crate::engine::MAX_TEMPLATES_PER_MATCH;
+
 /// One batch line's answer: its poses as printed, whether it timed out, and the milliseconds.
 type LineAnswer = (Vec<Value>, bool, f64);
 
@@ -414,7 +428,7 @@ fn match_line(
             .ok_or_else(|| format!("missing string field `{key}`"))
     };
     let result = (|| {
-        let template_path = path("template")?;
+        let template_paths = template_paths(&record, base)?;
         let image_path = path("image")?;
         let mask_path = match record.get("template_mask") {
             None | Some(Value::Null) => None,
@@ -430,6 +444,12 @@ fn match_line(
                 _ => return Err("`template_origin` must be two numbers [x, y]".into()),
             },
         };
+        if template_paths.len() > 1 && (mask_path.is_some() || origin.is_some()) {
+            return Err(
+                "`template_mask` and `template_origin` describe one template: use `template` with them"
+                    .into(),
+            );
+        }
         let options = match record.get("max_instances") {
             None => options.clone(),
             Some(n) => MatchOptions {
@@ -442,43 +462,78 @@ fn match_line(
             .validate()
             .map_err(|e| e.to_string())?,
         };
-        let Some(matcher) = matcher else {
-            let (template, mask) =
-                read_template(&template_path, mask_path.as_deref()).map_err(|e| e.to_string())?;
-            let image = read_image(&image_path).map_err(|e| e.to_string())?;
-            let origin =
-                origin_of(&template, origin).map_err(|m| format!("template_origin: {m}"))?;
-            let frame = TemplateFrame::new(template.width, template.height, origin);
-            let start = Instant::now();
-            let poses = ncc_answer(&template, mask.as_ref(), &image, &options)
-                .map_err(|e| e.to_string())?;
-            let ms = ms_since(start);
-            return Ok((poses_json(&poses, &frame, calibration), false, ms));
-        };
-        let key = (
-            template_path.clone(),
-            mask_path.clone(),
-            origin.map(|(x, y)| (x.to_bits(), y.to_bits())),
-        );
-        if !templates.contains_key(&key) {
-            let (template, mask) =
-                read_template(&template_path, mask_path.as_deref()).map_err(|e| e.to_string())?;
-            let origin =
-                origin_of(&template, origin).map_err(|m| format!("template_origin: {m}"))?;
-            let mut encoded = matcher
-                .encode_masked_template(&template, mask.as_ref())
-                .map_err(|e| format!("{}: {e}", template_path.display()))?;
-            encoded.origin = origin;
-            templates.insert(key.clone(), encoded);
+        // Every pose with the index of its template and that template's frame.
+        let mut found: Vec<(usize, Pose, TemplateFrame)> = Vec::new();
+        let mut timed_out = false;
+        let start;
+        let ms;
+        match matcher {
+            None => {
+                let mut read = Vec::with_capacity(template_paths.len());
+                for template_path in &template_paths {
+                    let (template, mask) = read_template(template_path, mask_path.as_deref())
+                        .map_err(|e| e.to_string())?;
+                    let origin = origin_of(&template, origin)
+                        .map_err(|m| format!("template_origin: {m}"))?;
+                    let frame = TemplateFrame::new(template.width, template.height, origin);
+                    read.push((template, mask, frame));
+                }
+                let image = read_image(&image_path).map_err(|e| e.to_string())?;
+                start = Instant::now();
+                for (index, (template, mask, frame)) in read.iter().enumerate() {
+                    let poses = ncc_answer(template, mask.as_ref(), &image, &options)
+                        .map_err(|e| e.to_string())?;
+                    found.extend(poses.into_iter().map(|pose| (index, pose, *frame)));
+                }
+                ms = ms_since(start);
+            }
+            Some(matcher) => {
+                let mut keys = Vec::with_capacity(template_paths.len());
+                for template_path in &template_paths {
+                    let key = (
+                        template_path.clone(),
+                        mask_path.clone(),
+                        origin.map(|(x, y)| (x.to_bits(), y.to_bits())),
+                    );
+                    if !templates.contains_key(&key) {
+                        let (template, mask) = read_template(template_path, mask_path.as_deref())
+                            .map_err(|e| e.to_string())?;
+                        let origin = origin_of(&template, origin)
+                            .map_err(|m| format!("template_origin: {m}"))?;
+                        let mut encoded = matcher
+                            .encode_masked_template(&template, mask.as_ref())
+                            .map_err(|e| format!("{}: {e}", template_path.display()))?;
+                        encoded.origin = origin;
+                        templates.insert(key.clone(), encoded);
+                    }
+                    keys.push(key);
+                }
+                let image = read_image(&image_path).map_err(|e| e.to_string())?;
+                let encoded: Vec<&EncodedTemplate> = keys.iter().map(|k| &templates[k]).collect();
+                start = Instant::now();
+                let outcomes = matcher.match_templates(&encoded, &image, &options);
+                ms = ms_since(start);
+                for (index, outcome) in outcomes.into_iter().enumerate() {
+                    let outcome = outcome.map_err(|e| e.to_string())?;
+                    timed_out |= outcome.timed_out;
+                    let frame = encoded[index].frame();
+                    found.extend(outcome.poses.into_iter().map(|pose| (index, pose, frame)));
+                }
+            }
         }
-        let image = read_image(&image_path).map_err(|e| e.to_string())?;
-        let start = Instant::now();
-        let outcome = matcher
-            .match_one(&templates[&key], &image, &options)
-            .map_err(|e| e.to_string())?;
-        let ms = ms_since(start);
-        let poses = poses_json(&outcome.poses, &templates[&key].frame(), calibration);
-        Ok((poses, outcome.timed_out, ms))
+        found.sort_by(|a, b| b.1.score.total_cmp(&a.1.score));
+        let several = record.get("templates").is_some();
+        let poses = found
+            .iter()
+            .map(|(index, pose, frame)| {
+                let mut value = pose_json(pose, frame, calibration);
+                if several {
+                    value["template"] = record["templates"][*index].clone();
+                }
+                value
+            })
+            .collect();
+        Ok((poses, timed_out, ms))
     })();
     (id, result)
 }

@@ -149,10 +149,14 @@ def test_a_short_cpu_run_lowers_the_loss(bank, tmp_path):
     args = T.parse_args(common + ["--out", str(out), "--steps", "30", "--log-every", "10",
                                   "--validate-every", "10"])
     assert T.train(args) == 30
-    args = T.parse_args(common + ["--out", str(out), "--steps", "40", "--log-every", "5", "--resume"])
+    snapshots = tmp_path / "snapshots"
+    args = T.parse_args(common + ["--out", str(out), "--steps", "40", "--log-every", "5", "--resume",
+                                  "--snapshots", str(snapshots)])
     assert T.train(args) == 40
     log = (out / "log.txt").read_text()
     assert "resumed at step 30 (120 pairs seen)" in log and "step 40/40" in log
+    # Every save is also kept under its step: the run's end here.
+    assert (snapshots / "weights-step40.pth").read_bytes() == (out / "weights.pth").read_bytes()
 
 
 def test_export_round_trip(tmp_path):
