@@ -553,13 +553,8 @@ fn several_templates_are_found_in_one_call() {
     )
     .unwrap();
     let results = path("results.jsonl");
-    let (code, _, stderr) = posematch(&[
-        "match",
-        "--pairs",
-        &path("pairs.jsonl"),
-        "--out",
-        &results,
-    ]);
+    let (code, _, stderr) =
+        posematch(&["match", "--pairs", &path("pairs.jsonl"), "--out", &results]);
     assert_eq!(code, 0, "{stderr}");
     let lines: Vec<Value> = std::fs::read_to_string(&results)
         .unwrap()
@@ -568,7 +563,10 @@ fn several_templates_are_found_in_one_call() {
         .collect();
     let both = lines[0]["poses"].as_array().expect("poses");
     assert!(!both.is_empty(), "{:?}", lines[0]);
-    assert!(both.iter().all(|p| p["template"] == "template.png"), "{both:?}");
+    assert!(
+        both.iter().all(|p| p["template"] == "template.png"),
+        "{both:?}"
+    );
     let one = lines[1]["poses"].as_array().expect("poses");
     assert_eq!(
         (both[0]["x"].as_f64(), both[0]["y"].as_f64()),

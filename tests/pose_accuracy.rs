@@ -176,9 +176,12 @@ fn verified_candidates_find_what_the_best_peak_misses_with_the_embedded_weights(
     println!(
         "{pairs} pairs, embedded weights: network {network}, refined {refined}, verified {verified}"
     );
+    // Verification keeps what the refined best peak finds and recovers at least half of what it
+    // misses (the weights of 2026-11-26: the best peak misses 2 of 24, verification none).
+    let missed = pairs as usize - refined;
     assert!(
-        verified >= refined + pairs as usize / 8,
-        "verification found {verified}, the refined best peak {refined}"
+        verified >= refined + missed.div_ceil(2),
+        "verification found {verified}, the refined best peak {refined} of {pairs}"
     );
 }
 

@@ -380,9 +380,7 @@ fn run_pairs(
 fn template_paths(record: &Value, base: &Path) -> Result<Vec<PathBuf>, String> {
     match (record.get("template"), record.get("templates")) {
         (Some(Value::String(one)), None) => Ok(vec![base.join(one)]),
-        (None, Some(Value::Array(list)))
-            if (1..=MAX_TEMPLATES_PER_LINE).contains(&list.len()) =>
-        {
+        (None, Some(Value::Array(list))) if (1..=MAX_TEMPLATES_PER_LINE).contains(&list.len()) => {
             let paths: Option<Vec<PathBuf>> = list
                 .iter()
                 .map(|p| p.as_str().map(|p| base.join(p)))
