@@ -17,7 +17,8 @@
 # Needs training/data/corpus (make_corpus.py) and training/data/init.safetensors
 # (`posematch weights export --out training/data/init.safetensors`) beside it. The mix is set
 # by LEVEL (default S1.5), ELONGATED (share, 0.5), ASPECT (largest sx/sy, 2.2), LR (3e-4),
-# WARMUP (150), BATCH (1024), MODES (eager,compile).
+# WARMUP (150), BATCH (1024), MODES (eager,compile); INIT=none trains afresh from random
+# initialisation instead (then e.g. LR=1e-3 WARMUP=500, as the base run).
 set -u
 out=${1:?OUT folder}
 minutes=${2:?training minutes}
@@ -43,7 +44,8 @@ if [ -z "${RESUME:-}" ]; then
   steps=$(awk -v r="$rate" -v m="$schedule" -v b="$chosen_batch" 'BEGIN { printf "%d", r * m * 60 / b }')
   echo "$chosen_batch $size $steps $mode" > "$run"/plan.txt
   echo "batch $chosen_batch crop $size rate $rate pairs/s ($mode) -> steps $steps over $schedule min" | tee -a "$log"
-  start=(--init-weights data/init.safetensors)
+  init=${INIT:-data/init.safetensors}
+  if [ "$init" = none ]; then start=(); else start=(--init-weights "$init"); fi
 else
   read -r chosen_batch size steps mode < "$run"/plan.txt
   echo "resume: batch $chosen_batch crop $size steps $steps ($mode)" | tee -a "$log"
