@@ -202,11 +202,7 @@ pub fn run(args: MatchArgs) -> Result<(), CliError> {
     let (mut poses, timed_out, ms): (Vec<(usize, Pose)>, bool, f64) = if args.method == Method::Ncc
     {
         let start = Instant::now();
-        let mut poses = Vec::new();
-        for (index, (template, mask, _)) in templates.iter().enumerate() {
-            let found = ncc_answer(template, mask.as_ref(), &image, &options)?;
-            poses.extend(found.into_iter().map(|pose| (index, pose)));
-        }
+        let poses = ncc_all(&templates, &image, &options)?;
         (poses, false, start.elapsed().as_secs_f64() * 1e3)
     } else {
         let matcher = load_model(&args.model)?;
@@ -218,17 +214,7 @@ pub fn run(args: MatchArgs) -> Result<(), CliError> {
             encoded.push(one);
         }
         let refs: Vec<&EncodedTemplate> = encoded.iter().collect();
-        let mut poses = Vec::new();
-        let mut timed_out = false;
-        for (index, outcome) in matcher
-            .match_templates(&refs, &image, &options)
-            .into_iter()
-            .enumerate()
-        {
-            let outcome = outcome?;
-            timed_out |= outcome.timed_out;
-            poses.extend(outcome.poses.into_iter().map(|pose| (index, pose)));
-        }
+        let (poses, timed_out) = network_all(&matcher, &refs, &image, &options)?;
         (poses, timed_out, start.elapsed().as_secs_f64() * 1e3)
     };
     poses.sort_by(|a, b| b.1.score.total_cmp(&a.1.score));
@@ -301,6 +287,43 @@ fn ncc_answer(
         &GrayImage32::from_rgb(image),
         options,
     ))
+}
+
+/// The classical matcher's poses of each template (read templates with their masks), each with
+/// its template's index.
+fn ncc_all(
+    templates: &[(RgbImage32, Option<TemplateMask>, TemplateFrame)],
+    image: &RgbImage32,
+    options: &MatchOptions,
+) -> Result<Vec<(usize, Pose)>, crate::matcher::MatchError> {
+    let mut found = Vec::new();
+    for (index, (template, mask, _)) in templates.iter().enumerate() {
+        let poses = ncc_answer(template, mask.as_ref(), image, options)?;
+        found.extend(poses.into_iter().map(|pose| (index, pose)));
+    }
+    Ok(found)
+}
+
+/// The network's poses of each template, found in one batch ([`Matcher::match_templates`]),
+/// each with its template's index; and whether any search ran out of time.
+fn network_all(
+    matcher: &Matcher,
+    templates: &[&EncodedTemplate],
+    image: &RgbImage32,
+    options: &ValidOptions,
+) -> Result<(Vec<(usize, Pose)>, bool), crate::matcher::MatchError> {
+    let mut found = Vec::new();
+    let mut timed_out = false;
+    for (index, outcome) in matcher
+        .match_templates(templates, image, options)
+        .into_iter()
+        .enumerate()
+    {
+        let outcome = outcome?;
+        timed_out |= outcome.timed_out;
+        found.extend(outcome.poses.into_iter().map(|pose| (index, pose)));
+    }
+    Ok((found, timed_out))
 }
 
 /// A pose as the CLI prints it: the pose's fields, its `transform` (the 2x3 matrix from
@@ -460,12 +483,8 @@ fn match_line(
             .validate()
             .map_err(|e| e.to_string())?,
         };
-        // Every pose with the index of its template and that template's frame.
-        let mut found: Vec<(usize, Pose, TemplateFrame)> = Vec::new();
-        let mut timed_out = false;
-        let start;
-        let ms;
-        match matcher {
+        // Every pose with the index of its template, and each template's frame.
+        let (mut found, frames, timed_out, ms) = match matcher {
             None => {
                 let mut read = Vec::with_capacity(template_paths.len());
                 for template_path in &template_paths {
@@ -477,13 +496,10 @@ fn match_line(
                     read.push((template, mask, frame));
                 }
                 let image = read_image(&image_path).map_err(|e| e.to_string())?;
-                start = Instant::now();
-                for (index, (template, mask, frame)) in read.iter().enumerate() {
-                    let poses = ncc_answer(template, mask.as_ref(), &image, &options)
-                        .map_err(|e| e.to_string())?;
-                    found.extend(poses.into_iter().map(|pose| (index, pose, *frame)));
-                }
-                ms = ms_since(start);
+                let start = Instant::now();
+                let found = ncc_all(&read, &image, &options).map_err(|e| e.to_string())?;
+                let frames: Vec<TemplateFrame> = read.iter().map(|(_, _, frame)| *frame).collect();
+                (found, frames, false, ms_since(start))
             }
             Some(matcher) => {
                 let mut keys = Vec::with_capacity(template_paths.len());
@@ -508,23 +524,19 @@ fn match_line(
                 }
                 let image = read_image(&image_path).map_err(|e| e.to_string())?;
                 let encoded: Vec<&EncodedTemplate> = keys.iter().map(|k| &templates[k]).collect();
-                start = Instant::now();
-                let outcomes = matcher.match_templates(&encoded, &image, &options);
-                ms = ms_since(start);
-                for (index, outcome) in outcomes.into_iter().enumerate() {
-                    let outcome = outcome.map_err(|e| e.to_string())?;
-                    timed_out |= outcome.timed_out;
-                    let frame = encoded[index].frame();
-                    found.extend(outcome.poses.into_iter().map(|pose| (index, pose, frame)));
-                }
+                let start = Instant::now();
+                let (found, timed_out) =
+                    network_all(matcher, &encoded, &image, &options).map_err(|e| e.to_string())?;
+                let frames = encoded.iter().map(|template| template.frame()).collect();
+                (found, frames, timed_out, ms_since(start))
             }
-        }
+        };
         found.sort_by(|a, b| b.1.score.total_cmp(&a.1.score));
         let several = record.get("templates").is_some();
         let poses = found
             .iter()
-            .map(|(index, pose, frame)| {
-                let mut value = pose_json(pose, frame, calibration);
+            .map(|(index, pose)| {
+                let mut value = pose_json(pose, &frames[*index], calibration);
                 if several {
                     value["template"] = record["templates"][*index].clone();
                 }
