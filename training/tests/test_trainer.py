@@ -230,3 +230,36 @@ def test_init_weights_read_what_posematch_exports(tmp_path):
     T.load_init_weights(model, path)
     tensors = T.read_safetensors(path)
     assert torch.equal(model.conv1.weight, tensors["conv1.weight"])
+
+
+def test_interpolated_weights_lie_between_the_two_runs(tmp_path):
+    """interpolate.py: alpha 0 and 1 give the two networks exactly, 0.5 the mean of every
+    floating-point tensor; weights of another shape are refused."""
+    import interpolate as I
+    torch.manual_seed(3)
+    base = {k: v.clone() for k, v in Tdcm().state_dict().items()}
+    torch.manual_seed(4)
+    tuned = {k: v.clone() for k, v in Tdcm().state_dict().items()}
+    base_path, tuned_path = tmp_path / "base.pth", tmp_path / "tuned.pth"
+    torch.save(base, base_path)
+    torch.save(tuned, tuned_path)
+    for alpha, expected in ((0.0, base), (1.0, tuned)):
+        out = tmp_path / f"mix{alpha}.pth"
+        I.main(["--base", str(base_path), "--tuned", str(tuned_path), "--alpha", str(alpha),
+                "--out", str(out)])
+        mixed = torch.load(out, weights_only=True)
+        for k, v in mixed.items():
+            if v.is_floating_point():
+                assert torch.equal(v, expected[k]), k
+    half = I.interpolate(base, tuned, 0.5)
+    weight = "conv1.weight"
+    assert not torch.equal(base[weight], tuned[weight])
+    assert torch.allclose(half[weight], (base[weight] + tuned[weight]) / 2)
+    model = Tdcm().eval()
+    model.load_state_dict(half)  # a complete, loadable state dict
+    bad = dict(base)
+    bad[weight] = torch.zeros(1)
+    with pytest.raises(SystemExit, match="conv1.weight: shape"):
+        I.interpolate(bad, tuned, 0.5)
+    with pytest.raises(SystemExit, match="--alpha 1.5"):
+        I.interpolate(base, tuned, 1.5)
