@@ -129,6 +129,7 @@ impl MatchArgs {
             classical_fallback: !self.verification.no_classical_fallback,
             polarity: self.verification.polarity,
             timeout_ms: self.timeout_ms,
+            covered_parts: None,
         }
         .validate()
         .map_err(|e| CliError::Usage(e.as_flag()))

@@ -279,6 +279,7 @@ pub fn options_from_proto(
             }
         },
         timeout_ms: timeout_ms.or(defaults.timeout_ms),
+        covered_parts: None,
         polarity: match proto::Polarity::try_from(polarity) {
             Ok(proto::Polarity::Unspecified) => defaults.polarity,
             Ok(proto::Polarity::Same) => Polarity::Same,

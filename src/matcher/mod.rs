@@ -584,9 +584,22 @@ pub fn with_classical_fallback(
     }
     let start = Instant::now();
     let mut poses = answers;
+    let size = (template.width as f32, template.height as f32);
     if let Some(candidates) = classical::fallback_candidates(template, image, options) {
-        let size = (template.width as f32, template.height as f32);
         poses.extend(verify_candidates(template, size, image, candidates, options).poses);
+        poses = select(poses, options, size.0, size.1);
+    }
+    if options.expects_covered_parts() && !poses.iter().any(|p| p.score >= trigger_score) {
+        // The classical search correlates the whole template too: a covered quarter hides
+        // the part from it as from the verification, so it searches without each quarter.
+        for partial in verification::without_each_quarter(template) {
+            if let Some(candidates) = classical::fallback_candidates(&partial, image, options) {
+                let found = verification::verify_partial(
+                    &partial, template, size, image, candidates, options, None,
+                );
+                poses.extend(found.poses);
+            }
+        }
         poses = select(poses, options, size.0, size.1);
     }
     (poses, start.elapsed().as_secs_f64() * 1e3)

@@ -210,7 +210,17 @@ pub struct MatchOptions {
     /// (a tile of a large frame) or one candidate's confirmation (docs/service.md). `None`:
     /// no limit.
     pub timeout_ms: Option<u32>,
+    /// Whether the verification also tries the template without each quarter, for parts a
+    /// clamp or a cable partly covers (`matcher/verification.rs`, docs/industrial.md).
+    /// `None`: when `min_score` is below [`COVERED_PARTS_BELOW`] (a quarter covered scores
+    /// about 0.75). Set by callers that lower `min_score` for their own reasons (the
+    /// evaluation keeps every answer) to keep the caller's choice.
+    pub covered_parts: Option<bool>,
 }
+
+/// A `min_score` below this says the caller expects partly covered parts
+/// ([`MatchOptions::covered_parts`]).
+pub const COVERED_PARTS_BELOW: f32 = 0.85;
 
 /// Upper bound on `max_instances`: beyond this a request is almost certainly a mistake.
 pub const MAX_INSTANCES_LIMIT: usize = 1000;
@@ -251,11 +261,18 @@ impl Default for MatchOptions {
             classical_fallback: true,
             polarity: Polarity::Same,
             timeout_ms: None,
+            covered_parts: None,
         }
     }
 }
 
 impl MatchOptions {
+    /// Whether partly covered parts are searched for ([`MatchOptions::covered_parts`]).
+    pub fn expects_covered_parts(&self) -> bool {
+        self.covered_parts
+            .unwrap_or(self.effective_min_score() < COVERED_PARTS_BELOW)
+    }
+
     /// Most candidates verified per search: `max_candidates`, or by default three per
     /// wanted instance and at least [`MIN_CANDIDATE_BUDGET`].
     pub fn candidate_budget(&self) -> usize {

@@ -322,3 +322,85 @@ fn without_refinement_the_heatmap_value_is_the_score() {
             .all(|p| p.score == p.network_score && p.score >= 0.65)
     );
 }
+
+/// `image` with the quarter of the object at `truth` that holds template columns and rows
+/// below 18 (the top-left quarter) painted over with one bright grey: a clamp over the part.
+fn cover_top_left_quarter(image: &mut GrayImage32, truth: &Pose) {
+    for b in 0..18 * 4 {
+        for a in 0..18 * 4 {
+            let (u, v) = (a as f32 / 4.0 - 17.5, b as f32 / 4.0 - 17.5);
+            let (x, y) = truth.map_point(u, v);
+            let (col, row) = (x.round() as usize, y.round() as usize);
+            if col < image.width && row < image.height {
+                image.values[row * image.width + col] = 0.95;
+            }
+        }
+    }
+}
+
+#[test]
+fn a_part_with_a_quarter_covered_is_found_below_the_covered_parts_score() {
+    let (mut image, template, truth) = scene();
+    cover_top_left_quarter(&mut image, &truth);
+    let mut candidates = decoys();
+    candidates.push(pose(
+        truth.x + 2.0,
+        truth.y - 1.5,
+        truth.angle_deg + 10.0,
+        1.0,
+        0.2,
+    ));
+    // At the default min_score a covered part does not pass: its score says what is missing.
+    let strict = MatchOptions {
+        max_instances: 1,
+        ..MatchOptions::default()
+    };
+    let found = verify_candidates(&template, (36.0, 36.0), &image, candidates.clone(), &strict);
+    assert!(found.poses.is_empty(), "{:?}", found.poses);
+    // With min_score 0.6 the template without its covered quarter finds it, and the whole
+    // template scores it by its visible share (this smooth texture's chance level is high).
+    let lenient = MatchOptions {
+        min_score: Some(0.6),
+        ..strict
+    };
+    assert!(lenient.expects_covered_parts());
+    let found = verify_candidates(&template, (36.0, 36.0), &image, candidates, &lenient);
+    assert_eq!(found.poses.len(), 1, "{:?}", found.poses);
+    let part = found.poses[0];
+    // Within 1.5 px, not 0.2: where the whole template's alignment (pulled by the cover) and
+    // a partial one's find the part, the duplicate check keeps the better score, not the
+    // better fit of the visible part (docs/industrial.md, "Occlusion").
+    assert!(
+        (part.x - truth.x).abs() < 1.5 && (part.y - truth.y).abs() < 1.5,
+        "{part:?}"
+    );
+    assert!(
+        angle_distance_deg(part.angle_deg, truth.angle_deg) < 1.0,
+        "{part:?}"
+    );
+    assert!((0.6..0.9).contains(&part.score), "{part:?}");
+}
+
+#[test]
+fn each_quarter_is_ignored_once_and_a_mostly_masked_template_keeps_what_it_has() {
+    let (_, template, _) = scene();
+    let partials = verification::without_each_quarter(&template);
+    assert_eq!(partials.len(), 4);
+    for (quarter, partial) in partials.iter().enumerate() {
+        let ignored: Vec<usize> = (0..36 * 36)
+            .filter(|&i| partial.values[i].is_nan())
+            .collect();
+        assert_eq!(ignored.len(), 18 * 18, "quarter {quarter}");
+        let (col, row) = (ignored[0] % 36, ignored[0] / 36);
+        assert_eq!((col >= 18, row >= 18), (quarter % 2 == 1, quarter >= 2));
+    }
+    // Only the top-left 6x6 used: ignoring that quarter would leave nothing, the others keep
+    // all 36 pixels (at least 16).
+    let mut masked = template.clone();
+    for (i, v) in masked.values.iter_mut().enumerate() {
+        if i % 36 >= 6 || i / 36 >= 6 {
+            *v = f32::NAN;
+        }
+    }
+    assert_eq!(verification::without_each_quarter(&masked).len(), 3);
+}

@@ -494,7 +494,103 @@ pub fn verify_candidates(
 /// [`verify_candidates`] until `answer_by`: a candidate not yet screened or confirmed then is
 /// left out (each takes a fraction of a millisecond to a few milliseconds, the granularity of
 /// the limit), and the verification says it timed out.
+///
+/// When covered parts are expected ([`MatchOptions::expects_covered_parts`]) the candidates
+/// are verified five times: with the whole template and with each quarter of it ignored. The
+/// screen, the alignment and the similarity all correlate the whole template, and a cover
+/// (a plain clamp, clutter) spoils each of them; the template without the covered quarter
+/// finds the part as a mask does. Every answer is then scored with the whole template
+/// ([`Verifier::score_at`]), so a part with a quarter covered still scores what its visible
+/// share says (about 0.75), not as a whole part. The network's candidates are the same for
+/// all five (it is shown the template as registered); the verification costs five times.
 pub fn verify_candidates_until(
+    template: &GrayImage32,
+    size: (f32, f32),
+    image: &GrayImage32,
+    candidates: Vec<Pose>,
+    options: &MatchOptions,
+    answer_by: Option<Instant>,
+) -> Verification {
+    if !options.expects_covered_parts() || candidates.is_empty() {
+        return verify_template(template, size, image, candidates, options, answer_by);
+    }
+    let mut all = verify_template(
+        template,
+        size,
+        image,
+        candidates.clone(),
+        options,
+        answer_by,
+    );
+    for partial in without_each_quarter(template) {
+        let found = verify_partial(
+            &partial,
+            template,
+            size,
+            image,
+            candidates.clone(),
+            options,
+            answer_by,
+        );
+        all.screen_ms += found.screen_ms;
+        all.confirm_ms += found.confirm_ms;
+        all.timed_out |= found.timed_out;
+        all.poses.extend(found.poses);
+    }
+    all.poses = select(all.poses, options, size.0, size.1);
+    all
+}
+
+/// `template` four times, each with one quarter ignored (NaN): top left, top right, bottom
+/// left, bottom right; a quarter that would leave fewer than 16 used pixels (a mask already
+/// ignores most of the rest) is left out.
+pub fn without_each_quarter(template: &GrayImage32) -> Vec<GrayImage32> {
+    let (w, h) = (template.width, template.height);
+    (0..4)
+        .filter_map(|quarter| {
+            let mut partial = template.clone();
+            for y in 0..h {
+                for x in 0..w {
+                    let right = usize::from(2 * x >= w);
+                    let bottom = usize::from(2 * y >= h);
+                    if right + 2 * bottom == quarter {
+                        partial.values[y * w + x] = f32::NAN;
+                    }
+                }
+            }
+            let used = partial.values.iter().filter(|v| !v.is_nan()).count();
+            (used >= 16).then_some(partial)
+        })
+        .collect()
+}
+
+/// Verifies `candidates` with `partial` (the template with a part ignored) and scores each
+/// answer with the `whole` template ([`Verifier::score_at`]): found as the visible part,
+/// scored as the part.
+pub fn verify_partial(
+    partial: &GrayImage32,
+    whole: &GrayImage32,
+    size: (f32, f32),
+    image: &GrayImage32,
+    candidates: Vec<Pose>,
+    options: &MatchOptions,
+    answer_by: Option<Instant>,
+) -> Verification {
+    let scales = options.scale_range.map(|r| (r.min, r.max));
+    let angle_range = options.angle_range;
+    let scorer = Verifier::new(whole, image, scales, move |angle| {
+        angle_range.is_none_or(|r| r.contains_within(angle, ANGLE_MARGIN_DEG))
+    });
+    let mut found = verify_template(partial, size, image, candidates, options, answer_by);
+    for pose in &mut found.poses {
+        pose.score = scorer.score_at(pose, scorer.similarity(pose));
+    }
+    found.poses = select(found.poses, options, size.0, size.1);
+    found
+}
+
+/// [`verify_candidates_until`] for one template (whole or with a quarter ignored).
+fn verify_template(
     template: &GrayImage32,
     (tw, th): (f32, f32),
     image: &GrayImage32,
