@@ -50,8 +50,11 @@ pub struct EvalArgs {
     /// The verified path's options, as `posematch match`'s.
     #[command(flatten)]
     pub verification: super::VerificationArgs,
-    /// What the line does to the part: `clean`, `reversed` (search image 255 − pixel) or
-    /// `occluded-quarter` (a quadrant of every instance covered by texture from elsewhere).
+    /// What the line and the camera do to the part: `clean`, `reversed` (search image 255 −
+    /// pixel), `occluded-quarter` (a quadrant of every instance covered by a plain patch),
+    /// `cluttered-quarter` (covered by texture from elsewhere), `jpeg-30`, `defocus-2`
+    /// (Gaussian, sigma 2 px), `noise-15` (Gaussian, sigma 15 grey levels), `dark-gamma`
+    /// (gamma 2.2, gain 0.6, offset 10) or `uneven-light` (gain 1.3 → 0.4 across the frame).
     #[arg(long, default_value = "clean", value_parser = str::parse::<Condition>)]
     pub condition: Condition,
     /// With `--condition occluded-quarter`: register each template with the covered quadrant

@@ -18,7 +18,7 @@ use crate::refine::{TemplatePoints, zncc};
 
 use super::error::MatchError;
 use super::options::{Contrast, MatchOptions};
-use super::selection::{ANGLE_MARGIN_DEG, select};
+use super::selection::select;
 use super::verification::{Screened, Verifier, correlation_length};
 
 /// Ratio between neighbouring scales of the coarse grid.
@@ -383,16 +383,7 @@ fn confirm_peaks(
     options: &MatchOptions,
     peaks: Vec<Pose>,
 ) -> Vec<Pose> {
-    let verifier = Verifier::new(
-        template,
-        image,
-        options.scale_range.map(|r| (r.min, r.max)),
-        |angle| {
-            options
-                .angle_range
-                .is_none_or(|r| r.contains_within(angle, ANGLE_MARGIN_DEG))
-        },
-    );
+    let verifier = Verifier::for_options(template, image, options);
     let poses: Vec<Pose> = peaks
         .into_par_iter()
         .map(|initial| {

@@ -43,7 +43,7 @@ use peaks::{MapPlanes, find_peaks, peak_at};
 use plan::{MAX_NETWORK_PIXELS, MIN_INPUT_SIDE, ScalePass, Tile};
 use selection::select;
 pub use template_mask::{MaskError, TemplateMask};
-use verification::{verify_candidates, verify_candidates_until};
+use verification::{Verifier, verify_candidates, verify_candidates_until};
 
 /// A template after encoding: what the service caches per template ID.
 #[derive(Debug, Clone)]
@@ -592,10 +592,11 @@ pub fn with_classical_fallback(
     if options.expects_covered_parts() && !poses.iter().any(|p| p.score >= trigger_score) {
         // The classical search correlates the whole template too: a covered quarter hides
         // the part from it as from the verification, so it searches without each quarter.
+        let scorer = Verifier::for_options(template, image, options);
         for partial in verification::without_each_quarter(template) {
             if let Some(candidates) = classical::fallback_candidates(&partial, image, options) {
                 let found = verification::verify_partial(
-                    &partial, template, size, image, candidates, options, None,
+                    &partial, &scorer, size, image, candidates, options, None,
                 );
                 poses.extend(found.poses);
             }

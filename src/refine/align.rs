@@ -32,33 +32,11 @@ impl GradientWindow {
     /// The window of `image` that holds a circle of `radius` around `(cx, cy)`, blurred with a
     /// Gaussian of `sigma` pixels (none when `sigma` is 0), and its central-difference gradients.
     pub(crate) fn new(image: &GrayImage32, cx: f32, cy: f32, radius: f32, sigma: f32) -> Self {
-        let clamp = |v: f32, hi: usize| (v.floor().max(0.0) as usize).min(hi.saturating_sub(1));
-        let (left, right) = (
-            clamp(cx - radius, image.width),
-            clamp(cx + radius + 1.0, image.width),
-        );
-        let (top, bottom) = (
-            clamp(cy - radius, image.height),
-            clamp(cy + radius + 1.0, image.height),
-        );
-        let (w, h) = (right - left + 1, bottom - top + 1);
-        let mut values = Vec::with_capacity(w * h);
-        for y in top..=bottom {
-            values
-                .extend_from_slice(&image.values[y * image.width + left..=y * image.width + right]);
-        }
-        let window = gaussian_blur(
-            &GrayImage32 {
-                width: w,
-                height: h,
-                values,
-            },
-            sigma,
-        );
+        let (window, x0, y0) = blurred_window(image, cx, cy, radius, sigma);
         let (gx, gy) = gradients(&window);
         Self {
-            x0: left as f32,
-            y0: top as f32,
+            x0,
+            y0,
             image: window,
             gx,
             gy,
@@ -72,6 +50,40 @@ impl GradientWindow {
         let (w, h) = (image.width as f32, image.height as f32);
         Self::new(image, 0.5 * w, 0.5 * h, w.max(h) + 1.0, sigma)
     }
+}
+
+/// The window of `image` that holds a circle of `radius` around `(cx, cy)`, blurred by a
+/// Gaussian of `sigma` pixels, and the image coordinates of its top-left pixel.
+pub(crate) fn blurred_window(
+    image: &GrayImage32,
+    cx: f32,
+    cy: f32,
+    radius: f32,
+    sigma: f32,
+) -> (GrayImage32, f32, f32) {
+    let clamp = |v: f32, hi: usize| (v.floor().max(0.0) as usize).min(hi.saturating_sub(1));
+    let (left, right) = (
+        clamp(cx - radius, image.width),
+        clamp(cx + radius + 1.0, image.width),
+    );
+    let (top, bottom) = (
+        clamp(cy - radius, image.height),
+        clamp(cy + radius + 1.0, image.height),
+    );
+    let (w, h) = (right - left + 1, bottom - top + 1);
+    let mut values = Vec::with_capacity(w * h);
+    for y in top..=bottom {
+        values.extend_from_slice(&image.values[y * image.width + left..=y * image.width + right]);
+    }
+    let window = gaussian_blur(
+        &GrayImage32 {
+            width: w,
+            height: h,
+            values,
+        },
+        sigma,
+    );
+    (window, left as f32, top as f32)
 }
 
 /// Template points: offsets from the template centre and values, taken from the template

@@ -31,8 +31,12 @@ use crate::geometry::{Pose, wrap_angle_deg};
 pub(crate) mod align;
 mod correlate;
 mod coverage;
+mod rank;
+mod sharpness;
 
 pub(crate) use coverage::Coverage;
+pub(crate) use rank::RankPoints;
+pub(crate) use sharpness::Sharpness;
 
 use crate::imaging::GrayImage32;
 
