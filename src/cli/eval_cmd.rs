@@ -55,8 +55,10 @@ pub struct EvalArgs {
     /// `cluttered-quarter` (covered by texture from elsewhere), `jpeg-30`, `defocus-2`
     /// (Gaussian, sigma 2 px), `noise-15` (Gaussian, sigma 15 grey levels), `dark-gamma`
     /// (gamma 2.2, gain 0.6, offset 10) or `uneven-light` (gain 1.3 → 0.4 across the frame).
-    #[arg(long, default_value = "clean", value_parser = str::parse::<Condition>)]
-    pub condition: Condition,
+    /// Several, comma-separated, apply in order: `absent,defocus-2` is a defocused scene
+    /// without the part.
+    #[arg(long, default_value = "clean", value_delimiter = ',', value_parser = str::parse::<Condition>)]
+    pub condition: Vec<Condition>,
     /// With `--condition occluded-quarter`: register each template with the covered quadrant
     /// masked out (what `--template-mask` does), as an engineer who knows where a clamp sits.
     #[arg(long)]
@@ -182,7 +184,7 @@ pub fn run(args: EvalArgs) -> Result<(), CliError> {
             make_pair(&photos, &spec, args.seed, index)
         }
         .map_err(|e| CliError::Input(e.to_string()))?;
-        let (pair, covered) = conditions::apply(pair, args.condition, args.seed, index);
+        let (pair, covered) = conditions::apply_all(pair, &args.condition, args.seed, index);
         let mask = covered.filter(|_| args.mask_covered).map(|quadrant| {
             let (w, h) = (pair.template.width, pair.template.height);
             TemplateMask::new(w, h, quadrant.mask_out(w, h))
@@ -244,7 +246,11 @@ pub fn run(args: EvalArgs) -> Result<(), CliError> {
     }
     let label = format!(
         "{} polarity={} {} {}x{} n={} seed={} min-structure={}",
-        args.condition.name(),
+        args.condition
+            .iter()
+            .map(|c| c.name())
+            .collect::<Vec<_>>()
+            .join("+"),
         options.polarity.name(),
         args.level.name(),
         tw,

@@ -12,6 +12,7 @@ use serde_json::{Value, json};
 use super::{CliError, ModelArgs, load_model, read_image, read_template};
 use crate::geometry::{Pose, TemplateFrame, TemplateOrigin};
 use crate::imaging::{GrayImage32, RgbImage32};
+use crate::matcher::classical::ClassicalOutcome;
 use crate::matcher::{
     AngleRange, EncodedTemplate, MatchOptions, Matcher, Method, ScaleRange, TemplateMask,
     ValidOptions,
@@ -203,8 +204,8 @@ pub fn run(args: MatchArgs) -> Result<(), CliError> {
     let (mut poses, timed_out, ms): (Vec<(usize, Pose)>, bool, f64) = if args.method == Method::Ncc
     {
         let start = Instant::now();
-        let poses = ncc_all(&templates, &image, &options)?;
-        (poses, false, start.elapsed().as_secs_f64() * 1e3)
+        let (poses, timed_out) = ncc_all(&templates, &image, &options)?;
+        (poses, timed_out, start.elapsed().as_secs_f64() * 1e3)
     } else {
         let matcher = load_model(&args.model)?;
         let start = Instant::now();
@@ -266,7 +267,8 @@ fn ncc_answer(
     mask: Option<&TemplateMask>,
     image: &RgbImage32,
     options: &MatchOptions,
-) -> Result<Vec<Pose>, crate::matcher::MatchError> {
+    answer_by: Option<Instant>,
+) -> Result<ClassicalOutcome, crate::matcher::MatchError> {
     crate::matcher::check_pair_sizes(template.width, template.height, image.width, image.height)?;
     let gray = GrayImage32::from_rgb(template);
     let gray = match mask {
@@ -283,26 +285,31 @@ fn ncc_answer(
         image.height,
         options,
     )?;
-    Ok(crate::matcher::classical::ncc_match(
+    Ok(crate::matcher::classical::ncc_match_until(
         &gray,
         &GrayImage32::from_rgb(image),
         options,
+        answer_by,
     ))
 }
 
 /// The classical matcher's poses of each template (read templates with their masks), each with
-/// its template's index.
+/// its template's index, within one time limit for them all (`timeout_ms` from now); and
+/// whether any search ran out of time.
 fn ncc_all(
     templates: &[(RgbImage32, Option<TemplateMask>, TemplateFrame)],
     image: &RgbImage32,
     options: &MatchOptions,
-) -> Result<Vec<(usize, Pose)>, crate::matcher::MatchError> {
+) -> Result<(Vec<(usize, Pose)>, bool), crate::matcher::MatchError> {
+    let answer_by = options.answer_by(Instant::now());
     let mut found = Vec::new();
+    let mut timed_out = false;
     for (index, (template, mask, _)) in templates.iter().enumerate() {
-        let poses = ncc_answer(template, mask.as_ref(), image, options)?;
-        found.extend(poses.into_iter().map(|pose| (index, pose)));
+        let outcome = ncc_answer(template, mask.as_ref(), image, options, answer_by)?;
+        timed_out |= outcome.timed_out;
+        found.extend(outcome.poses.into_iter().map(|pose| (index, pose)));
     }
-    Ok(found)
+    Ok((found, timed_out))
 }
 
 /// The network's poses of each template, found in one batch ([`Matcher::match_templates`]),
@@ -498,9 +505,10 @@ fn match_line(
                 }
                 let image = read_image(&image_path).map_err(|e| e.to_string())?;
                 let start = Instant::now();
-                let found = ncc_all(&read, &image, &options).map_err(|e| e.to_string())?;
+                let (found, timed_out) =
+                    ncc_all(&read, &image, &options).map_err(|e| e.to_string())?;
                 let frames: Vec<TemplateFrame> = read.iter().map(|(_, _, frame)| *frame).collect();
-                (found, frames, false, ms_since(start))
+                (found, frames, timed_out, ms_since(start))
             }
             Some(matcher) => {
                 let mut keys = Vec::with_capacity(template_paths.len());

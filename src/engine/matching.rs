@@ -113,8 +113,14 @@ impl Engine {
                 let mut answers = Vec::with_capacity(templates.len());
                 for template in templates {
                     answers.push(
-                        self.match_classical(template, Arc::clone(&image), &options, deadline)
-                            .await?,
+                        self.match_classical(
+                            template,
+                            Arc::clone(&image),
+                            &options,
+                            deadline,
+                            answer_by,
+                        )
+                        .await?,
                     );
                 }
                 answers
@@ -188,6 +194,7 @@ impl Engine {
         image: Arc<RgbImage32>,
         options: &ValidOptions,
         deadline: Option<Instant>,
+        answer_by: Option<Instant>,
     ) -> Result<MatchAnswer, EngineError> {
         let frame = template.frame();
         classical::check_work(
@@ -214,19 +221,24 @@ impl Engine {
         .map_err(|_| EngineError::Unavailable("the engine is shutting down".into()))?;
         let queue_ms = queued.elapsed().as_secs_f64() * 1e3;
         let start = Instant::now();
-        let poses = super::blocking(move || {
-            classical::ncc_match(&template.gray, &GrayImage32::from_rgb(&image), &options)
+        let found = super::blocking(move || {
+            classical::ncc_match_until(
+                &template.gray,
+                &GrayImage32::from_rgb(&image),
+                &options,
+                answer_by,
+            )
         })
         .await?;
         Ok(MatchAnswer {
-            poses,
+            poses: found.poses,
             timings: MatchTimings {
                 refine_ms: start.elapsed().as_secs_f64() * 1e3,
                 ..MatchTimings::default()
             },
             queue_ms,
             batch_size: 1,
-            timed_out: false,
+            timed_out: found.timed_out,
             template: frame,
         })
     }

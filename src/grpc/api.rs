@@ -193,9 +193,7 @@ async fn match_request(
         let image = decoder.search_image(request.image).await?;
         let (width, height) = (image.width, image.height);
         let decode_ms = received.elapsed().as_secs_f64() * 1e3;
-        let answer_by = options
-            .timeout_ms
-            .map(|ms| received + std::time::Duration::from_millis(u64::from(ms)));
+        let answer_by = options.answer_by(received);
         let answers = engine
             .match_templates(&template_ids, image, options, roi, deadline, answer_by)
             .await?;

@@ -10,6 +10,8 @@
 //! coarse-to-fine OpenCV NCC (`scripts/opencv_ncc.py`) in less time, 2x less under scale
 //! changes (docs/verification.md, "Classical matcher").
 
+use std::time::Instant;
+
 use rayon::prelude::*;
 
 use crate::geometry::Pose;
@@ -19,6 +21,7 @@ use crate::refine::{TemplatePoints, zncc};
 use super::error::MatchError;
 use super::options::{Contrast, MatchOptions};
 use super::selection::select;
+use super::time_limit::TimeLimit;
 use super::verification::{Screened, Verifier, correlation_length};
 
 /// Ratio between neighbouring scales of the coarse grid.
@@ -147,15 +150,37 @@ pub fn check_work(
 /// Finds the template in the image, in each contrast the options' polarity asks for; poses in
 /// the public convention, best first. The caller checks the cost first ([`check_work`]).
 pub fn ncc_match(template: &GrayImage32, image: &GrayImage32, options: &MatchOptions) -> Vec<Pose> {
+    ncc_match_until(template, image, options, None).poses
+}
+
+/// What the classical matcher found by its time limit.
+#[derive(Debug, Clone)]
+pub struct ClassicalOutcome {
+    pub poses: Vec<Pose>,
+    /// Angles were left unsearched or peaks unconfirmed because the time limit had come.
+    pub timed_out: bool,
+}
+
+/// [`ncc_match`] until `answer_by` (the options' `timeout_ms` after the request arrived): an
+/// angle of the coarse search not started by then is left out (each takes a few milliseconds
+/// on a 224 image, up to a few hundred on a 2048x2048 frame: the granularity of the limit), and
+/// so is a peak not yet confirmed; the answer is what was found, with `timed_out`.
+pub fn ncc_match_until(
+    template: &GrayImage32,
+    image: &GrayImage32,
+    options: &MatchOptions,
+    answer_by: Option<Instant>,
+) -> ClassicalOutcome {
+    let limit = TimeLimit::new(answer_by);
     let contrasts = options.polarity.contrasts();
     let mut poses = Vec::new();
     for &contrast in contrasts {
         poses.extend(match contrast {
-            Contrast::Same => ncc_match_contrast(template, image, options),
+            Contrast::Same => ncc_match_contrast(template, image, options, &limit),
             Contrast::Reversed => {
                 let mut reversed = template.clone();
                 reversed.values.iter_mut().for_each(|v| *v = 1.0 - *v);
-                ncc_match_contrast(&reversed, image, options)
+                ncc_match_contrast(&reversed, image, options, &limit)
             }
         });
     }
@@ -167,7 +192,10 @@ pub fn ncc_match(template: &GrayImage32, image: &GrayImage32, options: &MatchOpt
             template.height as f32,
         );
     }
-    poses
+    ClassicalOutcome {
+        poses,
+        timed_out: limit.missed(),
+    }
 }
 
 /// [`ncc_match`] for one contrast (the template's own).
@@ -175,6 +203,7 @@ fn ncc_match_contrast(
     template: &GrayImage32,
     image: &GrayImage32,
     options: &MatchOptions,
+    limit: &TimeLimit,
 ) -> Vec<Pose> {
     let plan = SearchPlan::new(
         template.width,
@@ -188,9 +217,10 @@ fn ncc_match_contrast(
         points: coarse_points,
         peaks: PEAKS_PER_INSTANCE * options.max_instances + PEAKS_BEYOND_INSTANCES,
         max_point_samples: u64::MAX,
+        limit,
     };
     let peaks = coarse_peaks(template, image, search).expect("no limit on the work");
-    confirm_peaks(template, image, options, peaks)
+    confirm_peaks(template, image, options, peaks, limit)
 }
 
 /// Most template-point samples (positions x angles x scale pairs x points, coarse level) that
@@ -234,17 +264,19 @@ pub fn fallback_candidates(
         points: |level_template| TemplatePoints::new(level_template, COARSE_POINTS_SIDE),
         peaks: PEAKS_PER_INSTANCE * options.max_instances + FALLBACK_PEAKS_BEYOND_INSTANCES,
         max_point_samples: FALLBACK_MAX_POINT_SAMPLES,
+        limit: &TimeLimit::new(None),
     };
     coarse_peaks(template, image, search)
 }
 
 /// One coarse search: where it looks, with which template points, how many distinct peaks it
-/// keeps and the most template-point samples it may cost.
-struct CoarseSearch {
+/// keeps, the most template-point samples it may cost and until when it may search.
+struct CoarseSearch<'a> {
     plan: SearchPlan,
     points: fn(&GrayImage32) -> TemplatePoints,
     peaks: usize,
     max_point_samples: u64,
+    limit: &'a TimeLimit,
 }
 
 /// The best distinct local maxima of a coarse search, at full resolution and scored by the
@@ -252,7 +284,7 @@ struct CoarseSearch {
 fn coarse_peaks(
     template: &GrayImage32,
     image: &GrayImage32,
-    search: CoarseSearch,
+    search: CoarseSearch<'_>,
 ) -> Option<Vec<Pose>> {
     let plan = search.plan;
     let mut level_template = template.clone();
@@ -295,6 +327,9 @@ fn coarse_peaks(
         .par_iter()
         .map(|&angle_deg| {
             let mut best = vec![empty; gw * gh];
+            if !search.limit.in_time() {
+                return best;
+            }
             for &scale_x in scales {
                 for &scale_y in scales {
                     let pose = Pose {
@@ -382,10 +417,12 @@ fn confirm_peaks(
     image: &GrayImage32,
     options: &MatchOptions,
     peaks: Vec<Pose>,
+    limit: &TimeLimit,
 ) -> Vec<Pose> {
     let verifier = Verifier::for_options(template, image, options);
     let poses: Vec<Pose> = peaks
         .into_par_iter()
+        .filter(|_| limit.in_time())
         .map(|initial| {
             if !options.verify {
                 return initial;
@@ -647,5 +684,32 @@ mod tests {
             crate::geometry::angle_distance_deg(p.angle_deg, truth.angle_deg) < 0.5,
             "{p:?}"
         );
+    }
+
+    #[test]
+    fn a_passed_time_limit_answers_at_once_and_says_it_timed_out() {
+        let (w, h) = (128usize, 128usize);
+        let texture = |x: f32, y: f32| 0.5 + 0.2 * (x * 0.23 + y * 0.05).sin() * (y * 0.19).cos();
+        let image = GrayImage32 {
+            width: w,
+            height: h,
+            values: (0..w * h)
+                .map(|i| texture((i % w) as f32, (i / w) as f32))
+                .collect(),
+        };
+        let template = GrayImage32 {
+            width: 32,
+            height: 32,
+            values: (0..32 * 32)
+                .map(|i| texture((i % 32) as f32 + 100.0, (i / 32) as f32 + 60.0))
+                .collect(),
+        };
+        let options = MatchOptions::default();
+        let unlimited = ncc_match_until(&template, &image, &options, None);
+        assert!(!unlimited.timed_out && !unlimited.poses.is_empty());
+        // Due before it starts: no angle is searched, no peak confirmed.
+        let passed = ncc_match_until(&template, &image, &options, Some(Instant::now()));
+        assert!(passed.timed_out);
+        assert!(passed.poses.is_empty(), "{:?}", passed.poses);
     }
 }

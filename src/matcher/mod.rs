@@ -21,6 +21,7 @@ mod pipeline_tests;
 pub mod plan;
 pub mod selection;
 pub mod template_mask;
+pub mod time_limit;
 pub mod verification;
 
 use std::sync::Arc;
@@ -289,9 +290,7 @@ impl Matcher {
             template,
             image,
             options,
-            answer_by: options
-                .timeout_ms
-                .map(|ms| Instant::now() + std::time::Duration::from_millis(u64::from(ms))),
+            answer_by: options.answer_by(Instant::now()),
         }])
         .pop()
         .expect("one job in, one answer out")
@@ -307,9 +306,7 @@ impl Matcher {
         image: &RgbImage32,
         options: &ValidOptions,
     ) -> Vec<Result<MatchOutcome, MatchError>> {
-        let answer_by = options
-            .timeout_ms
-            .map(|ms| Instant::now() + std::time::Duration::from_millis(u64::from(ms)));
+        let answer_by = options.answer_by(Instant::now());
         let jobs: Vec<MatchJob> = templates
             .iter()
             .map(|&template| MatchJob {

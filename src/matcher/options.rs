@@ -282,6 +282,13 @@ impl MatchOptions {
         }
     }
 
+    /// When a search that started at `start` must answer: `timeout_ms` later (`None`: no
+    /// limit).
+    pub fn answer_by(&self, start: std::time::Instant) -> Option<std::time::Instant> {
+        self.timeout_ms
+            .map(|ms| start + std::time::Duration::from_millis(u64::from(ms)))
+    }
+
     /// The `min_score` in force: the one given, or the default for the path.
     pub fn effective_min_score(&self) -> f32 {
         self.min_score.unwrap_or(if self.verify {

@@ -26,6 +26,7 @@ use rayon::prelude::*;
 
 use super::options::MatchOptions;
 use super::selection::{ANGLE_MARGIN_DEG, select};
+use super::time_limit::TimeLimit;
 use crate::geometry::{Pose, rotated_iou, wrap_angle_deg};
 use crate::imaging::GrayImage32;
 use crate::refine::{
@@ -663,19 +664,12 @@ fn verify_template(
             timed_out: false,
         };
     }
-    let left_out = std::sync::atomic::AtomicBool::new(false);
-    let in_time = || {
-        let on_time = answer_by.is_none_or(|due| Instant::now() < due);
-        if !on_time {
-            left_out.store(true, std::sync::atomic::Ordering::Relaxed);
-        }
-        on_time
-    };
+    let limit = TimeLimit::new(answer_by);
     let start = Instant::now();
     let verifier = Verifier::for_options(template, image, options);
     let mut screened: Vec<(Pose, Screened)> = candidates
         .into_par_iter()
-        .filter(|_| in_time())
+        .filter(|_| limit.in_time())
         .map(|candidate| (candidate, verifier.screen(&candidate)))
         .collect();
     // Best screen first; near-duplicates (the same object seen by two peaks) need no second
@@ -703,7 +697,7 @@ fn verify_template(
     let start = Instant::now();
     let confirmed: Vec<Pose> = survivors
         .into_par_iter()
-        .filter(|_| in_time())
+        .filter(|_| limit.in_time())
         .map(
             |Survivor {
                  candidate, screen, ..
@@ -722,6 +716,6 @@ fn verify_template(
         poses,
         screen_ms,
         confirm_ms: start.elapsed().as_secs_f64() * 1e3,
-        timed_out: left_out.into_inner(),
+        timed_out: limit.missed(),
     }
 }

@@ -271,6 +271,23 @@ fn uneven_light(image: &mut RgbImage32, direction: f32, gains: (f32, f32)) {
     }
 }
 
+/// `pair` under each of `conditions` in turn (each drawing from its own stream), with the
+/// quadrant the last covering condition covered.
+pub fn apply_all(
+    pair: SyntheticPair,
+    conditions: &[Condition],
+    seed: u64,
+    index: u64,
+) -> (SyntheticPair, Option<Quadrant>) {
+    conditions
+        .iter()
+        .enumerate()
+        .fold((pair, None), |(pair, covered), (k, &condition)| {
+            let (pair, now) = apply(pair, condition, seed.wrapping_add(k as u64), index);
+            (pair, now.or(covered))
+        })
+}
+
 /// What covers a quadrant.
 enum Cover {
     /// One colour.
@@ -435,6 +452,27 @@ mod tests {
             .count();
         // The part covers 16x16 = 256 image pixels.
         assert!((220..=290).contains(&changed), "{changed}");
+    }
+
+    #[test]
+    fn conditions_in_turn_are_each_one_as_alone_then_the_next() {
+        let clean = textured_pair();
+        for condition in ALL {
+            let (one, covered) = apply(clean.clone(), condition, 7, 8);
+            let (listed, listed_covered) = apply_all(clean.clone(), &[condition], 7, 8);
+            assert_eq!(
+                one.search.pixels,
+                listed.search.pixels,
+                "{}",
+                condition.name()
+            );
+            assert_eq!(covered, listed_covered);
+        }
+        let (absent, _) = apply(clean.clone(), Condition::Absent, 7, 8);
+        let (both, _) = apply_all(clean, &[Condition::Absent, Condition::DarkGamma], 7, 8);
+        for (a, b) in absent.search.pixels.iter().zip(&both.search.pixels) {
+            assert!((b - (0.6 * a.powf(2.2) + 10.0 / 255.0)).abs() < 1e-5);
+        }
     }
 
     #[test]
