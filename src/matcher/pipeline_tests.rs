@@ -446,13 +446,7 @@ fn a_part_under_each_camera_condition_is_found_at_the_default_min_score() {
     let image = texture_in_band(240, 240, 7, 0.2..1.2);
     let (_, _, truth) = scene();
     let template = cut_template(&image, &truth);
-    for condition in [
-        Condition::Jpeg30,
-        Condition::Defocus2,
-        Condition::Noise15,
-        Condition::DarkGamma,
-        Condition::UnevenLight,
-    ] {
+    for condition in crate::synth::conditions::CAMERA {
         let image = under_condition(&image, condition);
         let mut candidates = decoys();
         candidates.push(pose(

@@ -184,16 +184,7 @@ impl Coverage {
 #[cfg(test)]
 mod tests {
     use super::*;
-
-    /// White noise in [0.2, 0.8] (a hash of the position and the seed).
-    fn textured(width: usize, height: usize, seed: usize) -> GrayImage32 {
-        GrayImage32::from_fn(width, height, |x, y| {
-            let mut h = (x as u64) << 32 ^ (y as u64) << 12 ^ (seed as u64).wrapping_mul(0x9E37);
-            h = (h ^ (h >> 31)).wrapping_mul(0xBF58_476D_1CE4_E5B9);
-            h = (h ^ (h >> 27)).wrapping_mul(0x94D0_49BB_1331_11EB);
-            0.2 + 0.6 * ((h >> 40) as f32 / (1u64 << 24) as f32)
-        })
-    }
+    use crate::refine::textured;
 
     fn at(x: f32, y: f32) -> Pose {
         Pose {

@@ -85,13 +85,7 @@ fn unit_ranks(values: &[f32]) -> Vec<f32> {
 #[cfg(test)]
 mod tests {
     use super::*;
-
-    fn textured(width: usize, height: usize, seed: usize) -> GrayImage32 {
-        GrayImage32::from_fn(width, height, |x, y| {
-            let h = (x * 7919 + y * 104_729 + seed * 1_299_709).wrapping_mul(2_654_435_761);
-            0.2 + 0.6 * ((h >> 7) % 1000) as f32 / 1000.0
-        })
-    }
+    use crate::refine::textured;
 
     fn at_centre(template: &GrayImage32) -> Pose {
         Pose {

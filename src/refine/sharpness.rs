@@ -136,14 +136,7 @@ pub(crate) fn blurred_template(template: &GrayImage32, sigma: f32) -> GrayImage3
 #[cfg(test)]
 mod tests {
     use super::*;
-
-    /// White noise in [0.2, 0.8] (a hash of the position and the seed).
-    fn textured(width: usize, height: usize, seed: usize) -> GrayImage32 {
-        GrayImage32::from_fn(width, height, |x, y| {
-            let h = (x * 7919 + y * 104_729 + seed * 1_299_709).wrapping_mul(2_654_435_761);
-            0.2 + 0.6 * ((h >> 7) % 1000) as f32 / 1000.0
-        })
-    }
+    use crate::refine::textured;
 
     /// `template` pasted unrotated at scale 1 into `background` with its centre at `(cx, cy)`.
     fn pasted(

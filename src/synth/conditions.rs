@@ -45,6 +45,16 @@ pub enum Condition {
     Absent,
 }
 
+/// What the camera does (issue 41): the held-out table of docs/industrial.md, "Camera
+/// conditions".
+pub const CAMERA: [Condition; 5] = [
+    Condition::Jpeg30,
+    Condition::Defocus2,
+    Condition::Noise15,
+    Condition::DarkGamma,
+    Condition::UnevenLight,
+];
+
 /// Every condition, in the order of the held-out tables (docs/industrial.md).
 pub const ALL: [Condition; 10] = [
     Condition::Clean,
@@ -534,13 +544,7 @@ mod tests {
             (low - 0.4).abs() < 0.02 && (high - 1.3).abs() < 0.02,
             "{low}..{high}"
         );
-        for condition in [
-            Condition::Jpeg30,
-            Condition::Defocus2,
-            Condition::Noise15,
-            Condition::DarkGamma,
-            Condition::UnevenLight,
-        ] {
+        for condition in CAMERA {
             let (changed, quadrant) = super::apply(clean.clone(), condition, 5, 6);
             assert!(quadrant.is_none());
             assert_eq!(changed.truth, clean.truth);
