@@ -1,11 +1,12 @@
-//! Load benchmark of the gRPC service: N concurrent clients on loopback, each sending 224x224
-//! PNG frames with one registered 36x36 template back to back, against servers with different
-//! `max_batch_size`. Reports pairs/s, p50/p99 latency and the mean batch the model thread formed.
+//! Load benchmark of the service: N concurrent clients on loopback, each sending 224x224 PNG
+//! frames with one registered 36x36 template back to back, against servers with different
+//! `max_batch_size`, over gRPC and over the HTTP/JSON API (the same request as JSON, the image
+//! in base64). Reports pairs/s, p50/p99 latency and the mean batch the model thread formed.
 //!
 //! `cargo bench --bench load` — bounded in time (POSEMATCH_LOAD_SECONDS per configuration,
 //! default 10) and in requests (POSEMATCH_LOAD_MAX_REQUESTS per configuration, default 2000).
 //! POSEMATCH_LOAD_BATCHES (default "1,2,4") and POSEMATCH_LOAD_CLIENTS (default "1,8") choose the
-//! grid. Uses the official checkpoint when `../shared/reference` is present (realistic peak
+//! grid; POSEMATCH_LOAD_TRANSPORTS (default "grpc,http") the transports. Uses the official checkpoint when `../shared/reference` is present (realistic peak
 //! counts for refinement), an untrained network otherwise (refinement then sees random peaks;
 //! the network's cost does not depend on the weights).
 
@@ -15,6 +16,10 @@ static ALLOCATOR: mimalloc::MiMalloc = mimalloc::MiMalloc;
 #[allow(dead_code)]
 #[path = "../tests/common/service.rs"]
 mod service;
+
+#[allow(dead_code)]
+#[path = "../tests/common/http.rs"]
+mod http;
 
 use std::path::PathBuf;
 use std::time::{Duration, Instant};
@@ -71,7 +76,37 @@ struct Run {
     requests: usize,
 }
 
-async fn run(batch: usize, clients: usize, seconds: u64, max_requests: u64) -> Run {
+/// How the clients reach the service.
+#[derive(Clone, Copy, PartialEq)]
+enum Transport {
+    Grpc,
+    Http,
+}
+
+impl Transport {
+    fn parse(name: &str) -> Self {
+        match name.trim() {
+            "grpc" => Self::Grpc,
+            "http" => Self::Http,
+            other => panic!("POSEMATCH_LOAD_TRANSPORTS: {other:?} is neither grpc nor http"),
+        }
+    }
+
+    fn name(self) -> &'static str {
+        match self {
+            Self::Grpc => "gRPC",
+            Self::Http => "HTTP",
+        }
+    }
+}
+
+async fn run(
+    transport: Transport,
+    batch: usize,
+    clients: usize,
+    seconds: u64,
+    max_requests: u64,
+) -> Run {
     let dir = tempfile::tempdir().unwrap();
     let batch_setting = batch.to_string();
     let settings = settings(
@@ -105,6 +140,8 @@ async fn run(batch: usize, clients: usize, seconds: u64, max_requests: u64) -> R
     for _ in 0..3 {
         client.r#match(request.clone()).await.unwrap();
     }
+    let json = serde_json::to_value(&request).unwrap();
+    let http_client = http::HttpClient::new(server.http_addr.expect("the HTTP port is on"));
     let start = Instant::now();
     let until = start + Duration::from_secs(seconds);
     let budget = std::sync::Arc::new(std::sync::atomic::AtomicU64::new(max_requests));
@@ -112,6 +149,7 @@ async fn run(batch: usize, clients: usize, seconds: u64, max_requests: u64) -> R
         .map(|_| {
             let mut client = client.clone();
             let request = request.clone();
+            let (http_client, json) = (http_client.clone(), json.clone());
             let budget = budget.clone();
             tokio::spawn(async move {
                 let mut latencies = Vec::new();
@@ -125,7 +163,13 @@ async fn run(batch: usize, clients: usize, seconds: u64, max_requests: u64) -> R
                         .is_ok()
                 {
                     let t = Instant::now();
-                    client.r#match(request.clone()).await.unwrap();
+                    match transport {
+                        Transport::Grpc => drop(client.r#match(request.clone()).await.unwrap()),
+                        Transport::Http => {
+                            let answer = http_client.post("/v1/match", &json).await;
+                            assert_eq!(answer.status, 200, "{answer:?}");
+                        }
+                    }
                     latencies.push(t.elapsed().as_secs_f64() * 1e3);
                 }
                 latencies
@@ -168,22 +212,34 @@ fn main() {
     let clients = env_list("POSEMATCH_LOAD_CLIENTS", "1,8");
     let seconds = env_number("POSEMATCH_LOAD_SECONDS", 10);
     let max_requests = env_number("POSEMATCH_LOAD_MAX_REQUESTS", 2000);
+    let transports: Vec<Transport> = std::env::var("POSEMATCH_LOAD_TRANSPORTS")
+        .unwrap_or_else(|_| "grpc,http".into())
+        .split(',')
+        .map(Transport::parse)
+        .collect();
     let (_, source) = loader();
     println!(
         "load: 224x224 PNG frames, 36x36 template, refinement on, {source}, {seconds} s or {max_requests} requests per row"
     );
-    println!("max_batch_size  clients  requests  pairs/s   p50 ms   p99 ms  mean batch");
+    println!("transport  max_batch_size  clients  requests  pairs/s   p50 ms   p99 ms  mean batch");
     let runtime = tokio::runtime::Builder::new_multi_thread()
         .enable_all()
         .build()
         .unwrap();
     for &batch in &batches {
         for &n in &clients {
-            let r = runtime.block_on(run(batch, n, seconds, max_requests));
-            println!(
-                "{batch:>14}  {n:>7}  {:>8}  {:>7.2}  {:>7.1}  {:>7.1}  {:>10.2}",
-                r.requests, r.pairs_per_s, r.p50_ms, r.p99_ms, r.mean_batch
-            );
+            for &transport in &transports {
+                let r = runtime.block_on(run(transport, batch, n, seconds, max_requests));
+                println!(
+                    "{:<9}  {batch:>14}  {n:>7}  {:>8}  {:>7.2}  {:>7.1}  {:>7.1}  {:>10.2}",
+                    transport.name(),
+                    r.requests,
+                    r.pairs_per_s,
+                    r.p50_ms,
+                    r.p99_ms,
+                    r.mean_batch
+                );
+            }
         }
     }
 }

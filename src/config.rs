@@ -32,8 +32,13 @@ pub enum LogFormat {
 pub struct FileSettings {
     /// gRPC listen address.
     pub listen: String,
-    /// Prometheus `/metrics` listen address; port 0 picks a free port; empty disables it.
-    pub metrics_listen: String,
+    /// The HTTP port (JSON API, setup page, OpenAPI document, Prometheus `/metrics`); port 0
+    /// picks a free port; empty disables it.
+    pub http_listen: String,
+    /// The older name of `http_listen` (when it served only `/metrics`); when set, it is used
+    /// instead, so existing deployments keep their port.
+    #[serde(default)]
+    pub metrics_listen: Option<String>,
     /// Weights file; empty means the weights embedded in the binary.
     pub weights: String,
     /// Input convention of the weights: `imagenet` or `gray`.
@@ -110,7 +115,7 @@ pub const DEFAULTS_TOML: &str = include_str!("../deploy/posematch.toml");
 #[derive(Debug, Clone, Default)]
 pub struct Overrides {
     pub listen: Option<String>,
-    pub metrics_listen: Option<String>,
+    pub http_listen: Option<String>,
     pub weights: Option<PathBuf>,
     pub precision: Option<String>,
     pub template_dir: Option<PathBuf>,
@@ -161,7 +166,13 @@ impl Settings {
         };
         let path_string = |p: &Option<PathBuf>| p.as_ref().map(|p| p.display().to_string());
         builder = set(builder, "listen", overrides.listen.clone()).map_err(wrap)?;
-        builder = set(builder, "metrics_listen", overrides.metrics_listen.clone()).map_err(wrap)?;
+        if let Some(address) = overrides.http_listen.clone() {
+            // A flag is the last word: it also overrides an older `metrics_listen` key.
+            builder = builder
+                .set_override("http_listen", address.clone())
+                .and_then(|b| b.set_override("metrics_listen", address))
+                .map_err(wrap)?;
+        }
         builder = set(builder, "weights", path_string(&overrides.weights)).map_err(wrap)?;
         builder = set(builder, "precision", overrides.precision.clone()).map_err(wrap)?;
         builder = set(
@@ -203,8 +214,8 @@ pub struct Settings {
 #[derive(Debug, Clone)]
 pub struct ServerSettings {
     pub listen: SocketAddr,
-    /// `None`: no Prometheus endpoint.
-    pub metrics_listen: Option<SocketAddr>,
+    /// `None`: no HTTP port (no JSON API, setup page or Prometheus endpoint).
+    pub http_listen: Option<SocketAddr>,
     pub log_format: LogFormat,
     /// How long in-flight requests may finish after SIGTERM/Ctrl-C.
     pub shutdown_grace: Duration,
@@ -275,13 +286,17 @@ impl FileSettings {
                 short(&self.listen)
             ));
         };
-        let metrics_listen = match self.metrics_listen.as_str() {
+        let (http_key, http_address) = match &self.metrics_listen {
+            Some(older) => ("metrics_listen", older.as_str()),
+            None => ("http_listen", self.http_listen.as_str()),
+        };
+        let http_listen = match http_address {
             "" => None,
             address => match address.parse::<SocketAddr>() {
                 Ok(address) => Some(address),
                 Err(_) => {
                     return bad(format!(
-                        "metrics_listen = {:?} is not an address; use HOST:PORT (port 0 = any free port) or \"\" to disable",
+                        "{http_key} = {:?} is not an address; use HOST:PORT (port 0 = any free port) or \"\" to disable",
                         short(address)
                     ));
                 }
@@ -354,7 +369,7 @@ impl FileSettings {
         Ok(Settings {
             server: ServerSettings {
                 listen,
-                metrics_listen,
+                http_listen,
                 log_format: self.log_format,
                 shutdown_grace: Duration::from_secs(self.shutdown_grace_seconds),
                 reflection: self.reflection,
@@ -469,6 +484,30 @@ mod tests {
         assert_eq!(s.server.log_format, LogFormat::Json); // file
         assert_eq!(s.engine.queue_size, 16); // environment beats file
         assert_eq!(s.server.listen, "127.0.0.1:3".parse().unwrap()); // flag beats environment
+    }
+
+    #[test]
+    fn the_http_port_takes_its_older_name_and_the_flag_overrides_both() {
+        let load = |pairs: &[(&str, &str)], flag: Option<&str>| {
+            let overrides = Overrides {
+                http_listen: flag.map(str::to_owned),
+                ..Overrides::default()
+            };
+            Settings::load(None, env(pairs), &overrides).map(|s| s.server.http_listen)
+        };
+        let address = |a: &str| Some(a.parse::<SocketAddr>().unwrap());
+        assert_eq!(load(&[], None).unwrap(), address("0.0.0.0:9090"));
+        let older = [("POSEMATCH__METRICS_LISTEN", "127.0.0.1:9191")];
+        assert_eq!(load(&older, None).unwrap(), address("127.0.0.1:9191"));
+        let newer = [("POSEMATCH__HTTP_LISTEN", "127.0.0.1:8080")];
+        assert_eq!(load(&newer, None).unwrap(), address("127.0.0.1:8080"));
+        assert_eq!(
+            load(&older, Some("127.0.0.1:7070")).unwrap(),
+            address("127.0.0.1:7070")
+        );
+        assert_eq!(load(&[("POSEMATCH__HTTP_LISTEN", "")], None).unwrap(), None);
+        let bad = load(&[("POSEMATCH__METRICS_LISTEN", "nowhere")], None).unwrap_err();
+        assert!(bad.to_string().contains("metrics_listen"), "{bad}");
     }
 
     #[test]

@@ -5,7 +5,8 @@
 //! [`imaging`] (image files, normalisation, resizing), [`geometry`] (pose convention, rotated
 //! boxes), [`refine`] (scoring, alignment and pose refinement on the image), [`matcher`]
 //! (images in, poses out: network proposals, verification, classical fallback, selection),
-//! [`engine`] (template registry and store, the model thread), [`grpc`] (transport) and [`cli`]
+//! [`engine`] (template registry and store, the model thread), [`grpc`] (transport), [`http`]
+//! (the same API as JSON, the setup page) and [`cli`]
 //! on top. Beside them: [`synth`] (pairs with known truth), [`evaluation`] (the paper's
 //! metrics) and [`train`] (training on the CPU). One word, one meaning: `docs/glossary.md`.
 
@@ -15,6 +16,7 @@ pub mod engine;
 pub mod evaluation;
 pub mod geometry;
 pub mod grpc;
+pub mod http;
 pub mod imaging;
 pub mod matcher;
 pub mod model;

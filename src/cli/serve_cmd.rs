@@ -1,4 +1,4 @@
-//! `posematch serve`: the gRPC service. Reads the layered settings, sets up logging in the
+//! `posematch serve`: the gRPC service and its HTTP port. Reads the layered settings, sets up logging in the
 //! configured format, starts the server and drains it on SIGTERM or Ctrl-C.
 
 use std::path::PathBuf;
@@ -20,9 +20,11 @@ pub struct ServeArgs {
     /// gRPC listen address (default 0.0.0.0:50051).
     #[arg(long)]
     listen: Option<String>,
-    /// Prometheus /metrics address (default 0.0.0.0:9090; port 0 = any free port).
-    #[arg(long)]
-    metrics_listen: Option<String>,
+    /// HTTP address: the JSON API (/v1), the setup page (/), /openapi.json and /metrics
+    /// (default 0.0.0.0:9090; port 0 = any free port; "" = off). --metrics-listen is its older
+    /// name.
+    #[arg(long, alias = "metrics-listen")]
+    http_listen: Option<String>,
     /// Weights file (.bpk, .pth, .safetensors); default: the weights embedded in the binary.
     #[arg(long)]
     weights: Option<PathBuf>,
@@ -54,7 +56,7 @@ pub struct ServeArgs {
 pub fn run(args: ServeArgs) -> Result<(), CliError> {
     let overrides = Overrides {
         listen: args.listen,
-        metrics_listen: args.metrics_listen,
+        http_listen: args.http_listen,
         weights: args.weights,
         precision: args.precision,
         template_dir: args.template_dir,

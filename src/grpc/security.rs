@@ -38,25 +38,34 @@ pub enum SecurityFileError {
         setting: &'static str,
         path: PathBuf,
     },
+    #[error("{setting} = {}: {message}", path.display())]
+    Invalid {
+        setting: &'static str,
+        path: PathBuf,
+        message: String,
+    },
+}
+
+/// A PEM file's bytes; `setting` names it in errors.
+pub(crate) fn read_pem(setting: &'static str, path: &Path) -> Result<Vec<u8>, SecurityFileError> {
+    let bytes = std::fs::read(path).map_err(|source| SecurityFileError::Unreadable {
+        setting,
+        path: path.to_owned(),
+        source,
+    })?;
+    if bytes.windows(11).any(|w| w == b"-----BEGIN ") {
+        Ok(bytes)
+    } else {
+        Err(SecurityFileError::NotPem {
+            setting,
+            path: path.to_owned(),
+        })
+    }
 }
 
 /// The server's TLS configuration from its PEM files.
 pub fn tls_config(files: &TlsFiles) -> Result<ServerTlsConfig, SecurityFileError> {
-    let read = |setting: &'static str, path: &Path| {
-        let bytes = std::fs::read(path).map_err(|source| SecurityFileError::Unreadable {
-            setting,
-            path: path.to_owned(),
-            source,
-        })?;
-        if bytes.windows(11).any(|w| w == b"-----BEGIN ") {
-            Ok(bytes)
-        } else {
-            Err(SecurityFileError::NotPem {
-                setting,
-                path: path.to_owned(),
-            })
-        }
-    };
+    let read = read_pem;
     let mut config = ServerTlsConfig::new().identity(Identity::from_pem(
         read("tls_cert", &files.cert)?,
         read("tls_key", &files.key)?,
@@ -114,7 +123,7 @@ impl AccessTokens {
     }
 
     /// Whether an `authorization` header value carries an accepted token.
-    fn accepts(&self, authorization: Option<&http::HeaderValue>) -> bool {
+    pub(crate) fn accepts(&self, authorization: Option<&http::HeaderValue>) -> bool {
         let Some(token) = authorization
             .and_then(|v| v.to_str().ok())
             .and_then(|v| v.strip_prefix("Bearer "))

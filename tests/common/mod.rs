@@ -5,6 +5,7 @@
 
 #![allow(dead_code)]
 
+pub mod http;
 pub mod postgres;
 pub mod service;
 
@@ -24,6 +25,8 @@ pub const REFERENCE: &str = "../shared/reference";
 pub const GRPCURL: &str = "grpcurl";
 /// `initdb` and `pg_ctl`, for throw-away database clusters.
 pub const POSTGRESQL: &str = "PostgreSQL";
+/// Debian's `chromium` and `chromium-driver`, for the setup page in a real browser.
+pub const CHROMIUM: &str = "Chromium and chromedriver";
 
 /// The variables that made one dependency's absence a failure before [`unavailable`] looked at
 /// `CI`; still honoured for anyone who sets them by hand.

@@ -29,7 +29,7 @@ pub fn untrained_model() -> ModelLoader {
 pub fn settings(template_dir: &Path, tweak: &[(&str, &str)]) -> Settings {
     let mut environment: Vec<(String, String)> = vec![
         ("POSEMATCH__LISTEN".into(), "127.0.0.1:0".into()),
-        ("POSEMATCH__METRICS_LISTEN".into(), "127.0.0.1:0".into()),
+        ("POSEMATCH__HTTP_LISTEN".into(), "127.0.0.1:0".into()),
     ];
     environment.extend(
         tweak
@@ -147,7 +147,7 @@ pub fn assert_same_poses(a: &[proto::Pose], b: &[proto::Pose]) {
 }
 
 pub async fn metrics_text(server: &RunningServer) -> String {
-    let addr = server.metrics_addr.expect("metrics enabled");
+    let addr = server.http_addr.expect("the HTTP port enabled");
     tokio::task::spawn_blocking(move || {
         use std::io::{Read, Write};
         let mut stream = std::net::TcpStream::connect(addr).unwrap();

@@ -10,7 +10,9 @@
 //!   image bombs;
 //! - `health`: the standard health service while the model loads;
 //! - `security`: TLS, bearer tokens, SIGHUP;
-//! - `reflection`: `grpcurl` through reflection.
+//! - `reflection`: `grpcurl` through reflection;
+//! - `http`: the same API as JSON on the HTTP port, its statuses, tokens, TLS and OpenAPI
+//!   document.
 //!
 //! Most tests run an *untrained* (randomly initialised) network: they check the service's
 //! contract, not accuracy. The accuracy test over gRPC uses the official checkpoint and skips
@@ -23,6 +25,7 @@
 mod common;
 
 mod health;
+mod http;
 mod limits;
 mod matching;
 mod reflection;
