@@ -124,6 +124,9 @@ async fn status_text(browser: &Client) -> String {
     .to_owned()
 }
 
+/// A template ID that is markup: shown as text, never run.
+const MARKUP_ID: &str = "<img src=x onerror=\"window.pwned = 1\">";
+
 /// A camera frame with a distinctive part: a textured scene; the part is its crop at
 /// `PART` (x, y, width, height) in image pixels.
 const PART: (u32, u32, u32, u32) = (180, 120, 64, 48);
@@ -155,6 +158,15 @@ async fn the_setup_flow_works_in_a_real_browser() {
         .unwrap();
     server.ready().await.unwrap();
     let page = format!("http://{}/", server.http_addr.unwrap());
+    // A template whose ID and labels are markup: the page must show them as text.
+    let http = common::http::HttpClient::new(server.http_addr.unwrap());
+    let markup = json!({
+        "templateId": MARKUP_ID,
+        "image": {"encoded": common::http::base64(&png(&image::imageops::crop_imm(&scene(480, 360, 3), 20, 20, 32, 32).to_image()))},
+        "labels": {"<b>key</b>": "<img src=y onerror=\"window.pwned = 2\">"}
+    });
+    let registered = http.post("/v1/templates", &markup).await;
+    assert_eq!(registered.status, 200, "{registered:?}");
     let frame_path = dir.path().join("frame.png");
     std::fs::write(&frame_path, png(&scene(480, 360, 3))).unwrap();
 
@@ -304,6 +316,17 @@ async fn setup_flow(browser: &Client, page: &str, frame: &Path) -> Result<(), St
         (checked == json!(true)).then_some(())
     })
     .await;
+    let injected = script(
+        browser,
+        "return [window.pwned === undefined, document.querySelectorAll('img[src=x], img[src=y], #templates b').length,
+                 [...document.querySelectorAll('#templates li')].some(li => li.textContent.includes('<img src=x'))]",
+    )
+    .await;
+    assert_eq!(
+        injected,
+        json!([true, 0, true]),
+        "markup in an ID or label must be shown as text, never run"
+    );
     let thumbnail = eventually("the thumbnail loaded", || async {
         let loaded = script(
             browser,

@@ -265,19 +265,35 @@ impl RunningServer {
     /// Stops accepting connections and waits up to `grace` for in-flight requests to finish.
     pub async fn shutdown(self, grace: Duration) {
         let _ = self.shutdown.send(true);
-        let http = self.http;
-        let drained = tokio::time::timeout(grace, async move {
-            let grpc = self.grpc.await;
-            if let Some(http) = http {
-                let _ = http.await;
+        let (mut grpc, mut http) = (self.grpc, self.http);
+        let drained = tokio::time::timeout(grace, async {
+            let grpc = (&mut grpc).await;
+            let http = match &mut http {
+                Some(http) => Some(http.await),
+                None => None,
+            };
+            (grpc, http)
+        })
+        .await;
+        match drained {
+            Ok((grpc, http)) => {
+                if let Some(Err(e)) = http {
+                    tracing::warn!(error = %e, "the HTTP port's task failed");
+                }
+                match grpc {
+                    Ok(Ok(())) => tracing::info!("drained; stopped"),
+                    Ok(Err(e)) => tracing::warn!(error = %e, "server ended with an error"),
+                    Err(e) => tracing::warn!(error = %e, "server task failed"),
+                }
             }
-            grpc
-        });
-        match drained.await {
-            Ok(Ok(Ok(()))) => tracing::info!("drained; stopped"),
-            Ok(Ok(Err(e))) => tracing::warn!(error = %e, "server ended with an error"),
-            Ok(Err(e)) => tracing::warn!(error = %e, "server task failed"),
-            Err(_) => tracing::warn!(?grace, "in-flight requests did not finish in time"),
+            Err(_) => {
+                // Whatever is still running stops here, not after the caller moved on.
+                grpc.abort();
+                if let Some(http) = &http {
+                    http.abort();
+                }
+                tracing::warn!(?grace, "in-flight requests did not finish in time");
+            }
         }
     }
 }

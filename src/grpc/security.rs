@@ -124,10 +124,12 @@ impl AccessTokens {
 
     /// Whether an `authorization` header value carries an accepted token.
     pub(crate) fn accepts(&self, authorization: Option<&http::HeaderValue>) -> bool {
-        let Some(token) = authorization
-            .and_then(|v| v.to_str().ok())
-            .and_then(|v| v.strip_prefix("Bearer "))
-        else {
+        // The scheme's name is case-insensitive (RFC 9110), the token is not.
+        let Some(token) = authorization.and_then(|v| v.to_str().ok()).and_then(|v| {
+            v.get(..7)
+                .filter(|scheme| scheme.eq_ignore_ascii_case("bearer "))
+                .map(|_| &v[7..])
+        }) else {
             return false;
         };
         self.digests
@@ -248,6 +250,8 @@ mod tests {
         let header = |v: &str| http::HeaderValue::from_str(v).unwrap();
         assert!(tokens.accepts(Some(&header("Bearer alpha"))));
         assert!(tokens.accepts(Some(&header("Bearer beta"))));
+        assert!(tokens.accepts(Some(&header("bearer beta"))));
+        assert!(!tokens.accepts(Some(&header("Bearer BETA"))));
         assert!(!tokens.accepts(Some(&header("Bearer # line 4"))));
         assert!(!tokens.accepts(Some(&header("alpha"))));
         assert!(!tokens.accepts(None));

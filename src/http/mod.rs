@@ -84,6 +84,9 @@ pub fn router(
             "/v1/calibrations/{calibration_id}",
             get(get_calibration).delete(delete_calibration),
         )
+        // Checked after routing and before any body is read: a caller without a token, or a
+        // body that is not JSON, costs no memory.
+        .route_layer(axum::middleware::from_fn_with_state(state.clone(), guard))
         .layer(DefaultBodyLimit::max(max_body_bytes(max_message_bytes)));
     Router::new()
         .merge(v1)
@@ -144,6 +147,55 @@ pub async fn serve(
     if let Err(e) = result {
         tracing::warn!(error = %e, "the HTTP port stopped");
     }
+}
+
+/// The RPC a `/v1` route calls, for metrics and logs.
+fn rpc_of(method: &axum::http::Method, route: &str) -> &'static str {
+    use axum::http::Method;
+    match (method, route) {
+        (&Method::POST, "/v1/templates") => "RegisterTemplate",
+        (&Method::GET, "/v1/templates") => "ListTemplates",
+        (&Method::GET, "/v1/templates/{template_id}") => "GetTemplate",
+        (&Method::DELETE, "/v1/templates/{template_id}") => "DeleteTemplate",
+        (&Method::POST, "/v1/match") => "Match",
+        (&Method::POST, "/v1/calibrations") => "RegisterCalibration",
+        (&Method::GET, "/v1/calibrations") => "ListCalibrations",
+        (&Method::GET, "/v1/calibrations/{calibration_id}") => "GetCalibration",
+        (&Method::DELETE, "/v1/calibrations/{calibration_id}") => "DeleteCalibration",
+        _ => "unknown",
+    }
+}
+
+/// In front of every `/v1` route: the bearer token (when the server has tokens), and JSON as
+/// the only body type. The second is what keeps other web pages out: a browser sends a
+/// cross-site `text/plain` POST without asking, but asks the server (CORS preflight, which this
+/// server never grants) before a cross-site `application/json` one.
+async fn guard(
+    State(state): State<HttpState>,
+    route: Option<axum::extract::MatchedPath>,
+    request: axum::extract::Request,
+    next: axum::middleware::Next,
+) -> Response {
+    let rpc = rpc_of(request.method(), route.as_ref().map_or("", |r| r.as_str()));
+    if let Err(refused) = state.authorize(rpc, request.headers()) {
+        return refused.into_response();
+    }
+    let json = request
+        .headers()
+        .get(header::CONTENT_TYPE)
+        .and_then(|v| v.to_str().ok())
+        .and_then(|v| v.split(';').next())
+        .is_some_and(|v| v.trim().eq_ignore_ascii_case("application/json"));
+    if request.method() == axum::http::Method::POST && !json {
+        return state
+            .refuse(
+                rpc,
+                StatusCode::UNSUPPORTED_MEDIA_TYPE,
+                "send the body as JSON with the header `Content-Type: application/json` (other types are refused so that other web pages cannot post to this API)".into(),
+            )
+            .into_response();
+    }
+    next.run(request).await
 }
 
 async fn openapi(State(state): State<HttpState>) -> Response {
@@ -259,7 +311,14 @@ fn brief(text: &str) -> String {
 /// 200 with a message in its proto3 JSON form.
 fn json<M: serde::Serialize>(message: &M) -> Response {
     match serde_json::to_vec(message) {
-        Ok(body) => ([(header::CONTENT_TYPE, "application/json")], body).into_response(),
+        Ok(body) => (
+            [
+                (header::CONTENT_TYPE, "application/json"),
+                (header::X_CONTENT_TYPE_OPTIONS, "nosniff"),
+            ],
+            body,
+        )
+            .into_response(),
         Err(e) => ErrorBody::from_status(&Status::internal(format!(
             "the answer could not be written as JSON: {e}"
         )))
@@ -318,12 +377,9 @@ struct TemplateQuery {
     include_image: bool,
 }
 
-/// Every handler: authorise, parse, call the service, answer.
+/// Every handler (behind [`guard`]): parse, call the service, answer.
 macro_rules! handle {
     ($state:expr, $headers:expr, $rpc:literal, $message:expr, $method:ident) => {{
-        if let Err(refused) = $state.authorize($rpc, &$headers) {
-            return refused.into_response();
-        }
         let message = match $message {
             Ok(message) => message,
             Err(refused) => return refused.into_response(),

@@ -87,7 +87,7 @@ fn paths() -> Value {
         "description": "A registered calibration's ID (percent-encoded)."
     });
     let page = json!([
-        {"name": "pageSize", "in": "query", "schema": {"type": "integer", "minimum": 0, "maximum": 4294967295_u64},
+        {"name": "pageSize", "in": "query", "schema": {"type": "integer", "minimum": 0, "maximum": 1000},
          "description": "0 means 100; at most 1000."},
         {"name": "pageToken", "in": "query", "schema": {"type": "string"},
          "description": "From the previous page's nextPageToken; empty for the first page."}
@@ -147,15 +147,15 @@ fn paths() -> Value {
         "/v1/templates": {
             "post": register,
             "get": with_parameters(operation("ListTemplates", "Lists registered templates, a page at a time, in ID order.",
-                None, "ListTemplatesResponse", &[400, 401, 503, 504]), page.clone()),
+                None, "ListTemplatesResponse", &[400, 401, 503]), page.clone()),
         },
         "/v1/templates/{template_id}": {
             "get": with_parameters(operation("GetTemplate", "One template's description; with includeImage=true also its stored image (and mask), exactly as Match uses them.",
-                None, "TemplateInfo", &[400, 401, 404, 503, 504]),
+                None, "TemplateInfo", &[400, 401, 404, 503]),
                 json!([template_id, {"name": "includeImage", "in": "query", "schema": {"type": "boolean"},
                     "description": "Also return the stored image (TemplateInfo.image)."}])),
             "delete": with_parameters(operation("DeleteTemplate", "Deletes a template; `deleted` is left out (false) when there was none.",
-                None, "DeleteTemplateResponse", &[400, 401, 503, 504]), json!([template_id])),
+                None, "DeleteTemplateResponse", &[400, 401, 503]), json!([template_id])),
         },
         "/v1/match": {
             "post": with_parameters(match_image, json!([timeout])),
@@ -163,13 +163,13 @@ fn paths() -> Value {
         "/v1/calibrations": {
             "post": register_calibration,
             "get": with_parameters(operation("ListCalibrations", "Lists registered calibrations, a page at a time.",
-                None, "ListCalibrationsResponse", &[400, 401, 503, 504]), page),
+                None, "ListCalibrationsResponse", &[400, 401, 503]), page),
         },
         "/v1/calibrations/{calibration_id}": {
             "get": with_parameters(operation("GetCalibration", "One calibration.",
-                None, "CalibrationInfo", &[400, 401, 404, 503, 504]), json!([calibration_id])),
+                None, "CalibrationInfo", &[400, 401, 404, 503]), json!([calibration_id])),
             "delete": with_parameters(operation("DeleteCalibration", "Deletes a calibration; `deleted` is left out (false) when there was none.",
-                None, "DeleteCalibrationResponse", &[400, 401, 503, 504]), json!([calibration_id])),
+                None, "DeleteCalibrationResponse", &[400, 401, 503]), json!([calibration_id])),
         },
     })
 }

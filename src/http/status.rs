@@ -71,6 +71,10 @@ impl IntoResponse for ErrorBody {
         let (status, challenge) = (self.status, self.bearer_challenge);
         let mut response = Json(self).into_response();
         *response.status_mut() = status;
+        response.headers_mut().insert(
+            axum::http::header::X_CONTENT_TYPE_OPTIONS,
+            axum::http::HeaderValue::from_static("nosniff"),
+        );
         if challenge {
             response.headers_mut().insert(
                 axum::http::header::WWW_AUTHENTICATE,

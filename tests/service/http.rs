@@ -230,6 +230,19 @@ async fn every_documented_status_is_reachable_with_a_json_error() {
         "INVALID_ARGUMENT",
         "min_score",
     );
+    // Only JSON bodies: a cross-site form or text/plain POST never reaches the service.
+    for content_type in ["text/plain", "application/x-www-form-urlencoded"] {
+        let body = serde_json::to_vec(&register_body("t", &template_png(1))).unwrap();
+        let answer = http
+            .send(
+                "POST",
+                "/v1/templates",
+                body,
+                &[("content-type", content_type)],
+            )
+            .await;
+        assert_error(&answer, 415, "INVALID_ARGUMENT", "application/json");
+    }
     assert_error(
         &http.get("/v1/templates?pageSize=many").await,
         400,
@@ -352,11 +365,22 @@ async fn bearer_tokens_guard_the_api_but_not_the_page() {
     let tokens = tokens.display().to_string();
     let templates = dir.path().join("templates");
     let (server, _) = start(
-        &settings(&templates, &[("auth_tokens_file", &tokens)]),
+        &settings(
+            &templates,
+            &[
+                ("auth_tokens_file", &tokens),
+                ("max_message_bytes", "65536"),
+            ],
+        ),
         untrained_model(),
     )
     .await;
     let mut http = http_of(&server);
+    // Refused before its body is read: a caller without a token costs no memory (a body over
+    // the limit would otherwise be 413).
+    let oversize = json!({"templateId": "t", "image": {"encoded": base64(&vec![7u8; 200_000])}});
+    let refused = http.post("/v1/templates", &oversize).await;
+    assert_error(&refused, 401, "UNAUTHENTICATED", "Bearer");
     let refused = http.get("/v1/templates").await;
     assert_error(&refused, 401, "UNAUTHENTICATED", "Bearer");
     assert_eq!(refused.headers["www-authenticate"], "Bearer");
@@ -388,61 +412,91 @@ async fn bearer_tokens_guard_the_api_but_not_the_page() {
     server.shutdown(Duration::from_secs(5)).await;
 }
 
-/// With TLS, the HTTP port speaks it too (same files as gRPC): an HTTPS client that trusts the
-/// CA is served; plain HTTP is not.
-#[tokio::test(flavor = "multi_thread", worker_threads = 2)]
-async fn the_http_port_serves_tls_when_grpc_does() {
-    use rcgen::{CertificateParams, KeyPair};
+/// `GET /openapi.json` over HTTPS, trusting `ca`, presenting `identity` (certificate and key
+/// PEM) when given: the answer's text, or why there was none.
+async fn https_get(
+    addr: std::net::SocketAddr,
+    ca: &str,
+    identity: Option<(&str, &str)>,
+) -> Result<String, String> {
+    use rustls::pki_types::pem::PemObject;
+    use rustls::pki_types::{CertificateDer, PrivateKeyDer, ServerName};
     use tokio::io::{AsyncReadExt, AsyncWriteExt};
-    let dir = tempfile::tempdir().unwrap();
-    let key = KeyPair::generate().unwrap();
-    let cert = CertificateParams::new(vec!["localhost".to_string()])
-        .unwrap()
-        .self_signed(&key)
-        .unwrap();
-    let (cert_path, key_path) = (dir.path().join("cert.pem"), dir.path().join("key.pem"));
-    std::fs::write(&cert_path, cert.pem()).unwrap();
-    std::fs::write(&key_path, key.serialize_pem()).unwrap();
-    let (cert_file, key_file) = (
-        cert_path.display().to_string(),
-        key_path.display().to_string(),
-    );
-    let tls = [
-        ("tls_cert", cert_file.as_str()),
-        ("tls_key", key_file.as_str()),
-    ];
-    let mut server = RunningServer::start(
-        &settings(&dir.path().join("templates"), &tls),
-        untrained_model(),
-    )
-    .await
-    .unwrap();
-    server.ready().await.unwrap();
-    let addr = server.http_addr.unwrap();
-
     let mut roots = rustls::RootCertStore::empty();
-    roots.add(cert.der().clone()).unwrap();
-    let config = rustls::ClientConfig::builder_with_provider(std::sync::Arc::new(
+    roots
+        .add(CertificateDer::from_pem_slice(ca.as_bytes()).unwrap())
+        .unwrap();
+    let builder = rustls::ClientConfig::builder_with_provider(std::sync::Arc::new(
         rustls::crypto::ring::default_provider(),
     ))
     .with_safe_default_protocol_versions()
     .unwrap()
-    .with_root_certificates(roots)
-    .with_no_client_auth();
+    .with_root_certificates(roots);
+    let config = match identity {
+        Some((cert, key)) => builder
+            .with_client_auth_cert(
+                vec![CertificateDer::from_pem_slice(cert.as_bytes()).unwrap()],
+                PrivateKeyDer::from_pem_slice(key.as_bytes()).unwrap(),
+            )
+            .unwrap(),
+        None => builder.with_no_client_auth(),
+    };
     let connector = tokio_rustls::TlsConnector::from(std::sync::Arc::new(config));
-    let tcp = tokio::net::TcpStream::connect(addr).await.unwrap();
-    let name = rustls::pki_types::ServerName::try_from("localhost").unwrap();
-    let mut tls_stream = connector.connect(name, tcp).await.unwrap();
-    tls_stream
-        .write_all(b"GET /openapi.json HTTP/1.1\r\nHost: localhost\r\nConnection: close\r\n\r\n")
+    let exchange = async {
+        let tcp = tokio::net::TcpStream::connect(addr)
+            .await
+            .map_err(|e| e.to_string())?;
+        let name = ServerName::try_from("localhost").unwrap();
+        let mut stream = connector
+            .connect(name, tcp)
+            .await
+            .map_err(|e| e.to_string())?;
+        stream
+            .write_all(
+                b"GET /openapi.json HTTP/1.1\r\nHost: localhost\r\nConnection: close\r\n\r\n",
+            )
+            .await
+            .map_err(|e| e.to_string())?;
+        let mut answer = Vec::new();
+        stream
+            .read_to_end(&mut answer)
+            .await
+            .map_err(|e| e.to_string())?;
+        Ok(String::from_utf8_lossy(&answer).into_owned())
+    };
+    tokio::time::timeout(Duration::from_secs(10), exchange)
+        .await
+        .map_err(|_| "no answer within 10 s".to_string())?
+}
+
+/// With TLS, the HTTP port speaks it too (the same files as gRPC): an HTTPS client that trusts
+/// the CA is served, plain HTTP is not; with `tls_client_ca`, only clients that present a
+/// certificate of that CA.
+#[tokio::test(flavor = "multi_thread", worker_threads = 2)]
+async fn the_http_port_serves_tls_when_grpc_does() {
+    use tokio::io::{AsyncReadExt, AsyncWriteExt};
+    let dir = tempfile::tempdir().unwrap();
+    let pki = crate::security::test_pki();
+    let file = |name: &str, pem: &str| {
+        let path = dir.path().join(name);
+        std::fs::write(&path, pem).unwrap();
+        path.display().to_string()
+    };
+    let (cert, key, ca) = (
+        file("server.pem", &pki.server_cert),
+        file("server.key", &pki.server_key),
+        file("ca.pem", &pki.ca),
+    );
+    let templates = dir.path().join("templates");
+    let tls = [("tls_cert", cert.as_str()), ("tls_key", key.as_str())];
+    let mut server = RunningServer::start(&settings(&templates, &tls), untrained_model())
         .await
         .unwrap();
-    let mut answer = Vec::new();
-    let _ = tls_stream.read_to_end(&mut answer).await;
-    let answer = String::from_utf8_lossy(&answer);
+    server.ready().await.unwrap();
+    let addr = server.http_addr.unwrap();
+    let answer = https_get(addr, &pki.ca, None).await.unwrap();
     assert!(answer.starts_with("HTTP/1.1 200"), "{answer:.200}");
     assert!(answer.contains("\"openapi\""), "{answer:.200}");
-
     let plain = tokio::time::timeout(Duration::from_secs(10), async {
         let mut tcp = tokio::net::TcpStream::connect(addr).await.unwrap();
         tcp.write_all(b"GET /openapi.json HTTP/1.1\r\nHost: x\r\nConnection: close\r\n\r\n")
@@ -458,6 +512,25 @@ async fn the_http_port_serves_tls_when_grpc_does() {
         !String::from_utf8_lossy(&plain).contains("200 OK"),
         "plain HTTP was served on a TLS port"
     );
+    server.shutdown(Duration::from_secs(5)).await;
+
+    let mutual = [tls[0], tls[1], ("tls_client_ca", ca.as_str())];
+    let mut server = RunningServer::start(&settings(&templates, &mutual), untrained_model())
+        .await
+        .unwrap();
+    server.ready().await.unwrap();
+    let addr = server.http_addr.unwrap();
+    let anonymous = https_get(addr, &pki.ca, None).await;
+    assert!(
+        !anonymous
+            .as_deref()
+            .unwrap_or("")
+            .starts_with("HTTP/1.1 200"),
+        "a client without a certificate was served: {anonymous:?}"
+    );
+    let identity = Some((pki.client_cert.as_str(), pki.client_key.as_str()));
+    let answer = https_get(addr, &pki.ca, identity).await.unwrap();
+    assert!(answer.starts_with("HTTP/1.1 200"), "{answer:.200}");
     server.shutdown(Duration::from_secs(5)).await;
 }
 

@@ -997,6 +997,12 @@
 
   async function deleteTemplate(id, button) {
     if (!window.confirm(`Delete template "${id}"? Matches can no longer use it.`)) return;
+    // Keyboard users keep their place: focus moves to the next template's checkbox (or the
+    // previous one's, or the refresh button) instead of falling back to the top of the page.
+    const item = button.closest('li');
+    const neighbour = item && (item.nextElementSibling || item.previousElementSibling);
+    const neighbourId = neighbour ? neighbour.dataset.templateId : null;
+    button.setAttribute('aria-disabled', 'true');
     button.disabled = true;
     try {
       const result = await api('DELETE', templatePath(id));
@@ -1006,8 +1012,13 @@
       }
       setStatus(result.deleted ? `Deleted ${id}` : `${id} was not found: nothing was deleted`);
       await refreshTemplates();
+      const next = Array.from(el.templates.children).find((li) => li.dataset.templateId === neighbourId);
+      const target = next ? next.querySelector('input[name="template"]') : el.refreshTemplates;
+      if (target) target.focus();
     } catch (err) {
       button.disabled = false;
+      button.removeAttribute('aria-disabled');
+      button.focus();
       reportError(`Deleting ${id} failed`, err);
     }
   }
