@@ -15,12 +15,9 @@ use std::time::{Duration, Instant};
 use fantoccini::actions::{InputSource, MouseActions, PointerAction};
 use fantoccini::{Client, ClientBuilder, Locator};
 use posematch::grpc::RunningServer;
-use posematch::imaging::InputConvention;
-use posematch::matcher::Matcher;
-use posematch::model::{WeightsSource, select_device};
 use serde_json::{Value, json};
 
-use common::service::{png, scene, settings};
+use common::service::{embedded_model, png, scene, settings};
 
 /// How long the page may take to show what a step does (the first match in a debug build
 /// includes the network's warm-up).
@@ -146,16 +143,12 @@ async fn the_setup_flow_works_in_a_real_browser() {
         return;
     };
     let dir = tempfile::tempdir().unwrap();
-    let loader: posematch::grpc::ModelLoader = Box::new(|| {
-        let device = select_device().map_err(|e| e.to_string())?;
-        let model = WeightsSource::Embedded
-            .load(&device)
-            .map_err(|e| e.to_string())?;
-        Ok(Matcher::new(model, device, InputConvention::ImagenetRgb))
-    });
-    let mut server = RunningServer::start(&settings(&dir.path().join("templates"), &[]), loader)
-        .await
-        .unwrap();
+    let mut server = RunningServer::start(
+        &settings(&dir.path().join("templates"), &[]),
+        embedded_model(),
+    )
+    .await
+    .unwrap();
     server.ready().await.unwrap();
     let page = format!("http://{}/", server.http_addr.unwrap());
     // A template whose ID and labels are markup: the page must show them as text.

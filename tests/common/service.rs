@@ -15,9 +15,21 @@ use posematch::grpc::proto::{self, image::Data};
 use posematch::grpc::{ModelLoader, RunningServer};
 use posematch::imaging::InputConvention;
 use posematch::matcher::Matcher;
-use posematch::model::{TdcmConfig, select_device};
+use posematch::model::{TdcmConfig, WeightsSource, select_device};
 use tonic::transport::Channel;
 
+/// The default weights compiled into the binary: for answers that must find the part.
+pub fn embedded_model() -> ModelLoader {
+    Box::new(|| {
+        let device = select_device().map_err(|e| e.to_string())?;
+        let model = WeightsSource::Embedded
+            .load(&device)
+            .map_err(|e| e.to_string())?;
+        Ok(Matcher::new(model, device, InputConvention::ImagenetRgb))
+    })
+}
+
+/// Random weights: for tests of the service around the network, whose poses are arbitrary.
 pub fn untrained_model() -> ModelLoader {
     Box::new(|| {
         let device = select_device().map_err(|e| e.to_string())?;
