@@ -183,3 +183,37 @@ fn a_checkpoint_that_does_not_fit_names_the_first_bad_tensor() {
     );
     assert_eq!(stderr.trim().lines().count(), 1, "{stderr}");
 }
+
+/// A mounted weights file often loses its name (a container's `/models/weights`): each format
+/// is then recognised by its first bytes and loads exactly as under its own extension, and a
+/// file that is none of them says which formats it takes.
+#[test]
+fn a_weights_file_without_an_extension_is_recognised_by_its_content() {
+    let tmp = tempfile::tempdir().unwrap();
+    let device = Device::flex();
+    let nameless = tmp.path().join("weights");
+    let same_network = |named: &std::path::Path| {
+        std::fs::copy(named, &nameless).unwrap();
+        let expected = forward(&load_weights(named, &device).unwrap(), &device);
+        let loaded = load_weights(&nameless, &device).unwrap_or_else(|e| panic!("{e}"));
+        assert_eq!(forward(&loaded, &device), expected, "{}", named.display());
+    };
+    same_network(
+        &std::path::Path::new(env!("CARGO_MANIFEST_DIR")).join("models/posematch-default.bpk"),
+    );
+    let exported = tmp.path().join("default.safetensors");
+    let (code, _, stderr) = posematch(&["weights", "export", "--out", exported.to_str().unwrap()]);
+    assert_eq!(code, 0, "{stderr}");
+    same_network(&exported);
+
+    std::fs::write(&nameless, b"<html>not weights</html>").unwrap();
+    let error = load_weights(&nameless, &device).unwrap_err();
+    assert!(matches!(error, LoadError::UnknownFormat { .. }), "{error}");
+    assert!(
+        error.to_string().contains(".pth/.pt, .safetensors or .bpk"),
+        "{error}"
+    );
+
+    let Some(dir) = reference_dir() else { return };
+    same_network(&dir.join("tdcm-official.pth"));
+}

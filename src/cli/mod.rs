@@ -103,8 +103,9 @@ pub struct VerificationArgs {
 /// Model flags shared by every subcommand that runs the network.
 #[derive(Args, Debug, Clone)]
 pub struct ModelArgs {
-    /// Weights file: .bpk (PoseMatch), .pth/.pt or .safetensors (official PyTorch checkpoint);
-    /// `default`: the weights embedded in this binary (models/README.md).
+    /// Weights file: .bpk (PoseMatch), .pth/.pt or .safetensors (official PyTorch checkpoint;
+    /// a file named otherwise is recognised by its content); `default`: the weights embedded
+    /// in this binary (models/README.md).
     #[arg(long, default_value = "default", value_parser = parse_weights_source)]
     pub weights: WeightsSource,
     /// Input convention: `imagenet` (RGB, ImageNet mean/std; how the official checkpoint was

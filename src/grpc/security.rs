@@ -26,7 +26,7 @@ const HEALTH_PREFIX: &str = "/grpc.health.v1.Health/";
 /// A security file that cannot be used; the message names the setting and the file.
 #[derive(Debug, thiserror::Error)]
 pub enum SecurityFileError {
-    #[error("{setting} = {}: {source}", path.display())]
+    #[error("{setting} = {}: {source}{}", path.display(), permission_hint(source))]
     Unreadable {
         setting: &'static str,
         path: PathBuf,
@@ -44,6 +44,19 @@ pub enum SecurityFileError {
         path: PathBuf,
         message: String,
     },
+}
+
+/// What to do about a file this process may not read: in a container the server runs as
+/// another user than the one who owns a mounted key (the image's is 10001:10001).
+fn permission_hint(error: &std::io::Error) -> String {
+    if error.kind() != std::io::ErrorKind::PermissionDenied {
+        return String::new();
+    }
+    // SAFETY: getuid and getgid cannot fail and touch no memory.
+    let (uid, gid) = unsafe { (libc::getuid(), libc::getgid()) };
+    format!(
+        " (the server runs as uid {uid}, gid {gid}: make the file readable by them, e.g. chown {uid}:{gid} FILE && chmod 0400 FILE)"
+    )
 }
 
 /// A PEM file's bytes; `setting` names it in errors.
@@ -240,6 +253,30 @@ impl<S> Gate<S> {
 #[cfg(test)]
 mod tests {
     use super::*;
+
+    /// Only a refused read gets the hint (tests run as root here, which no file mode stops,
+    /// so the error is made by hand; deploy/test-containers.sh meets the real one).
+    #[test]
+    fn an_unreadable_file_says_which_user_must_read_it() {
+        let refused = SecurityFileError::Unreadable {
+            setting: "tls_key",
+            path: "/run/secrets/key".into(),
+            source: std::io::ErrorKind::PermissionDenied.into(),
+        };
+        let message = refused.to_string();
+        let uid = unsafe { libc::getuid() };
+        assert!(
+            message.starts_with("tls_key = /run/secrets/key: "),
+            "{message}"
+        );
+        assert!(message.contains(&format!("runs as uid {uid}")), "{message}");
+        let missing = SecurityFileError::Unreadable {
+            setting: "tls_key",
+            path: "/run/secrets/key".into(),
+            source: std::io::ErrorKind::NotFound.into(),
+        };
+        assert!(!missing.to_string().contains("uid"), "{missing}");
+    }
 
     #[test]
     fn tokens_are_read_per_line_and_reloaded() {

@@ -65,7 +65,7 @@ pub enum LoadError {
         problem: String,
     },
     #[error(
-        "weights file {path} has an unknown extension; use .pth/.pt (PyTorch), .safetensors, or .bpk (PoseMatch)"
+        "weights file {path} is neither a PyTorch checkpoint, safetensors nor burnpack (by its extension or its first bytes); give a .pth/.pt, .safetensors or .bpk file"
     )]
     UnknownFormat { path: PathBuf },
 }
@@ -82,14 +82,44 @@ pub enum WeightsFormat {
 }
 
 impl WeightsFormat {
-    pub fn from_path(path: &Path) -> Result<Self, LoadError> {
-        match path.extension().and_then(|e| e.to_str()) {
-            Some("pth" | "pt") => Ok(Self::Pytorch),
-            Some("safetensors") => Ok(Self::PytorchSafetensors),
-            Some("bpk") => Ok(Self::Burnpack),
-            _ => Err(LoadError::UnknownFormat {
+    /// The format of the file at `path`: by its extension, or else by its first bytes. A
+    /// mounted file often loses its name (a container's `/models/weights`, a Kubernetes secret
+    /// key), and the three formats are told apart by their headers.
+    pub fn of_file(path: &Path) -> Result<Self, LoadError> {
+        if let Some(format) = Self::from_extension(path) {
+            return Ok(format);
+        }
+        use std::io::Read;
+        let mut head = Vec::with_capacity(9);
+        std::fs::File::open(path)
+            .and_then(|file| file.take(9).read_to_end(&mut head))
+            .map_err(|e| LoadError::Unreadable {
                 path: path.to_owned(),
-            }),
+                message: e.to_string(),
+            })?;
+        Self::from_header(&head).ok_or_else(|| LoadError::UnknownFormat {
+            path: path.to_owned(),
+        })
+    }
+
+    fn from_extension(path: &Path) -> Option<Self> {
+        match path.extension().and_then(|e| e.to_str()) {
+            Some("pth" | "pt") => Some(Self::Pytorch),
+            Some("safetensors") => Some(Self::PytorchSafetensors),
+            Some("bpk") => Some(Self::Burnpack),
+            _ => None,
+        }
+    }
+
+    /// Burnpack starts with `NRUB` (`BURN` as a little-endian u32); a PyTorch checkpoint is a
+    /// zip archive (`PK\x03\x04`, since PyTorch 1.6) or a bare pickle (protocol byte `0x80`);
+    /// safetensors is a little-endian u64 header length followed by the header's JSON `{`.
+    fn from_header(head: &[u8]) -> Option<Self> {
+        match head {
+            [b'N', b'R', b'U', b'B', ..] => Some(Self::Burnpack),
+            [b'P', b'K', 3, 4, ..] | [0x80, 2..=5, ..] => Some(Self::Pytorch),
+            [length @ .., b'{'] if length.len() == 8 => Some(Self::PytorchSafetensors),
+            _ => None,
         }
     }
 }
@@ -154,7 +184,7 @@ impl std::fmt::Display for WeightsSource {
     }
 }
 
-/// Builds the network on `device` and loads the weights at `path` (format from the extension).
+/// Builds the network on `device` and loads the weights at `path` ([`WeightsFormat::of_file`]).
 pub fn load_weights(path: &Path, device: &Device) -> Result<Tdcm, LoadError> {
     let mut model = TdcmConfig::new().init(device);
     let unreadable = |message: String| LoadError::Unreadable {
@@ -164,7 +194,7 @@ pub fn load_weights(path: &Path, device: &Device) -> Result<Tdcm, LoadError> {
     if !path.is_file() {
         return Err(unreadable("no such file".into()));
     }
-    let result = match WeightsFormat::from_path(path)? {
+    let result = match WeightsFormat::of_file(path)? {
         WeightsFormat::Pytorch => {
             let mut store = PytorchStore::from_file(path)
                 .remap(key_remapper())
@@ -186,6 +216,7 @@ pub fn load_weights(path: &Path, device: &Device) -> Result<Tdcm, LoadError> {
         }
         WeightsFormat::Burnpack => {
             let mut store = BurnpackStore::from_file(path)
+                .auto_extension(false)
                 .allow_partial(true)
                 .validate(false);
             model
