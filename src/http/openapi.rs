@@ -181,7 +181,9 @@ fn operation(rpc: &str, summary: &str, body: Option<&str>, answer: &str, errors:
         "200".into(),
         json!({"description": "OK", "content": {"application/json": {"schema": reference(answer)}}}),
     );
-    for status in errors.iter().chain(&[500]) {
+    // Every operation with a body refuses other content types (415): see `require_json`.
+    let refused_type: &[u16] = if body.is_some() { &[415] } else { &[] };
+    for status in errors.iter().chain(refused_type).chain(&[500]) {
         responses.insert(
             status.to_string(),
             json!({"$ref": format!("#/components/responses/{status}")}),
@@ -264,6 +266,10 @@ fn error_responses() -> Value {
         (
             413,
             "The body is larger than the server takes (OUT_OF_RANGE).",
+        ),
+        (
+            415,
+            "The body was not sent with `Content-Type: application/json` (INVALID_ARGUMENT): other types are refused so that other web pages cannot post to this API.",
         ),
         (
             429,

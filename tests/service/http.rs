@@ -747,6 +747,19 @@ async fn the_openapi_document_matches_what_the_server_does() {
         check(&answer, documented, method);
         answered.insert((documented, method));
     }
+    // A body without `Content-Type: application/json` is refused as documented (415).
+    for path in ["/v1/templates", "/v1/match", "/v1/calibrations"] {
+        let answer = http
+            .send(
+                "POST",
+                path,
+                b"{}".to_vec(),
+                &[("content-type", "text/plain")],
+            )
+            .await;
+        assert_eq!(answer.status, 415, "{answer:?}");
+        check(&answer, path, "post");
+    }
     // Every documented operation was exercised.
     for (path, operations) in document["paths"].as_object().unwrap() {
         for method in operations.as_object().unwrap().keys() {
