@@ -580,6 +580,89 @@ fn several_templates_are_found_in_one_call() {
     }
 }
 
+/// `--suppress-across-templates`: a template and a slightly larger crop around the same part
+/// both find it; with the flag only the better-scoring answer is left, in single and batch
+/// mode.
+#[test]
+fn overlapping_answers_of_different_templates_can_be_one_object() {
+    let tmp = tempfile::tempdir().unwrap();
+    write_blob_pair(tmp.path());
+    let path = |name: &str| tmp.path().join(name).display().to_string();
+    let image = image::open(path("image.png")).unwrap().to_rgb8();
+    image::imageops::crop_imm(&image, 38, 28, 28, 28)
+        .to_image()
+        .save(path("wider.png"))
+        .unwrap();
+    let (template, wider, search) = (path("template.png"), path("wider.png"), path("image.png"));
+    let templates_of = |stdout: &str| -> Vec<String> {
+        let answer: Value = serde_json::from_str(stdout).unwrap();
+        answer["poses"]
+            .as_array()
+            .unwrap()
+            .iter()
+            .map(|p| p["template"].as_str().unwrap().to_owned())
+            .collect()
+    };
+    let run = |extra: &[&str]| {
+        let mut args = vec![
+            "match",
+            "--method",
+            "ncc",
+            "--template",
+            &template,
+            "--template",
+            &wider,
+            "--image",
+            &search,
+            "--max-instances",
+            "1",
+        ];
+        args.extend_from_slice(extra);
+        let (code, stdout, stderr) = posematch(&args);
+        assert_eq!(code, 0, "{stderr}");
+        stdout
+    };
+    let each = run(&[]);
+    let mut found = templates_of(&each);
+    found.sort();
+    assert_eq!(found, [template.clone(), wider.clone()], "{each}");
+    let one = run(&["--suppress-across-templates"]);
+    assert_eq!(templates_of(&one).len(), 1, "{one}");
+    let answer: Value = serde_json::from_str(&each).unwrap();
+    assert_eq!(
+        templates_of(&one)[0],
+        answer["poses"][0]["template"].as_str().unwrap(),
+        "the better-scoring answer stays: {each} {one}"
+    );
+
+    // Batch mode (the network): the same flag applies to each line's templates.
+    std::fs::write(
+        path("pairs.jsonl"),
+        r#"{"id": "both", "templates": ["template.png", "wider.png"], "image": "image.png"}"#,
+    )
+    .unwrap();
+    let (pairs, results) = (path("pairs.jsonl"), path("results.jsonl"));
+    for (flag, expected) in [(None, 2), (Some("--suppress-across-templates"), 1)] {
+        let mut args = vec![
+            "match",
+            "--pairs",
+            &pairs,
+            "--out",
+            &results,
+            "--max-instances",
+            "1",
+            "--min-score",
+            "0.5",
+        ];
+        args.extend(flag);
+        let (code, _, stderr) = posematch(&args);
+        assert_eq!(code, 0, "{stderr}");
+        let line: Value =
+            serde_json::from_str(std::fs::read_to_string(&results).unwrap().trim()).unwrap();
+        assert_eq!(line["poses"].as_array().unwrap().len(), expected, "{line}");
+    }
+}
+
 /// `--method ncc` answers batch files too (no weights needed); bad lines get their error.
 #[test]
 fn classical_matcher_runs_in_batch_mode() {

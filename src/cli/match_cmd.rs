@@ -13,6 +13,7 @@ use super::{CliError, ModelArgs, load_model, read_image, read_template};
 use crate::geometry::{Pose, TemplateFrame, TemplateOrigin};
 use crate::imaging::{GrayImage32, RgbImage32};
 use crate::matcher::classical::ClassicalOutcome;
+use crate::matcher::selection::suppress_across_templates;
 use crate::matcher::{
     AngleRange, EncodedTemplate, MatchOptions, Matcher, Method, ScaleRange, TemplateMask,
     ValidOptions,
@@ -66,6 +67,12 @@ pub struct MatchArgs {
     /// Suppress an instance whose rotated box overlaps a better one by more than this IoU.
     #[arg(long, default_value_t = MatchOptions::default().max_overlap)]
     pub max_overlap: f32,
+    /// With several templates (repeated --template, a batch line's `"templates"`): of two
+    /// instances of different templates whose boxes overlap by more than --max-overlap, report
+    /// only the better-scoring one (one answer per object when similar parts may be mistaken
+    /// for one another).
+    #[arg(long)]
+    pub suppress_across_templates: bool,
     /// Only report angles in START,END (degrees, counter-clockwise, e.g. -45,45).
     #[arg(long, value_parser = parse_angle_range, allow_hyphen_values = true)]
     pub angle_range: Option<AngleRange>,
@@ -82,7 +89,7 @@ pub struct MatchArgs {
     pub method: Method,
     /// Answer within this many milliseconds (from the start of matching, after the files are
     /// read) with what was verified by then, and `"timed_out": true`, instead of finishing the
-    /// search (network method only).
+    /// search (with `--method ncc` too, whose image pyramid is not interruptible).
     #[arg(long)]
     pub timeout_ms: Option<u32>,
     /// Draw the poses on the search image and save it here (PNG).
@@ -131,6 +138,7 @@ impl MatchArgs {
             polarity: self.verification.polarity,
             timeout_ms: self.timeout_ms,
             covered_parts: None,
+            suppress_across_templates: self.suppress_across_templates,
         }
         .validate()
         .map_err(|e| CliError::Usage(e.as_flag()))
@@ -309,7 +317,11 @@ fn ncc_all(
         timed_out |= outcome.timed_out;
         found.extend(outcome.poses.into_iter().map(|pose| (index, pose)));
     }
-    Ok((found, timed_out))
+    let sizes: Vec<(f32, f32)> = templates
+        .iter()
+        .map(|(template, ..)| (template.width as f32, template.height as f32))
+        .collect();
+    Ok((across_templates(found, &sizes, options), timed_out))
 }
 
 /// The network's poses of each template, found in one batch ([`Matcher::match_templates`]),
@@ -331,7 +343,25 @@ fn network_all(
         timed_out |= outcome.timed_out;
         found.extend(outcome.poses.into_iter().map(|pose| (index, pose)));
     }
-    Ok((found, timed_out))
+    let sizes: Vec<(f32, f32)> = templates
+        .iter()
+        .map(|template| (template.width as f32, template.height as f32))
+        .collect();
+    Ok((across_templates(found, &sizes, options), timed_out))
+}
+
+/// Every template's poses, with those that another template's better answer explains removed
+/// where the options ask for it ([`suppress_across_templates`]).
+fn across_templates(
+    found: Vec<(usize, Pose)>,
+    sizes: &[(f32, f32)],
+    options: &MatchOptions,
+) -> Vec<(usize, Pose)> {
+    if options.suppress_across_templates && sizes.len() > 1 {
+        suppress_across_templates(found, sizes, options.max_overlap)
+    } else {
+        found
+    }
 }
 
 /// A pose as the CLI prints it: the pose's fields, its `transform` (the 2x3 matrix from

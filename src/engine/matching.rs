@@ -15,6 +15,7 @@ use super::batcher::{BatchError, MatchWork, SubmitError};
 use super::{Engine, EngineError};
 use crate::geometry::{Pose, TemplateFrame};
 use crate::imaging::{GrayImage32, RgbImage32};
+use crate::matcher::selection::suppress_across_templates;
 use crate::matcher::{EncodedTemplate, MatchTimings, Method, ValidOptions, classical};
 
 /// A rectangle of the search image to restrict the search to.
@@ -126,6 +127,9 @@ impl Engine {
                 answers
             }
         };
+        if options.suppress_across_templates && answers.len() > 1 {
+            suppress_overlaps_across(&mut answers, options.max_overlap);
+        }
         for pose in answers.iter_mut().flat_map(|answer| &mut answer.poses) {
             pose.x += offset.0;
             pose.y += offset.1;
@@ -241,6 +245,29 @@ impl Engine {
             timed_out: found.timed_out,
             template: frame,
         })
+    }
+}
+
+/// [`suppress_across_templates`] over one request's answers (one per template, each best
+/// first): a pose that a better answer of another template overlaps by more than `max_overlap`
+/// is removed from its template's answer.
+fn suppress_overlaps_across(answers: &mut [MatchAnswer], max_overlap: f32) {
+    let sizes: Vec<(f32, f32)> = answers
+        .iter()
+        .map(|a| (a.template.width as f32, a.template.height as f32))
+        .collect();
+    let found: Vec<(usize, Pose)> = answers
+        .iter_mut()
+        .enumerate()
+        .flat_map(|(index, answer)| {
+            std::mem::take(&mut answer.poses)
+                .into_iter()
+                .map(move |pose| (index, pose))
+        })
+        .collect();
+    // Kept best first overall, hence best first within each template.
+    for (index, pose) in suppress_across_templates(found, &sizes, max_overlap) {
+        answers[index].poses.push(pose);
     }
 }
 

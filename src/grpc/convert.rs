@@ -206,6 +206,7 @@ pub fn options_from_proto(
         polarity,
         timeout_ms,
         calibration_id,
+        suppress_across_templates,
     } = options.unwrap_or_default();
     let invalid = |m: String| Err(EngineError::InvalidArgument(m));
     let finite = [
@@ -280,6 +281,7 @@ pub fn options_from_proto(
         },
         timeout_ms: timeout_ms.or(defaults.timeout_ms),
         covered_parts: None,
+        suppress_across_templates,
         polarity: match proto::Polarity::try_from(polarity) {
             Ok(proto::Polarity::Unspecified) => defaults.polarity,
             Ok(proto::Polarity::Same) => Polarity::Same,

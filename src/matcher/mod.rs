@@ -28,6 +28,7 @@ use std::sync::Arc;
 use std::time::Instant;
 
 use burn::prelude::*;
+use rayon::prelude::*;
 
 use crate::geometry::{Pose, TemplateFrame, TemplateOrigin};
 use crate::imaging::GrayImage32;
@@ -334,13 +335,18 @@ impl Matcher {
         jobs: &[MatchJob],
         still_wanted: &dyn Fn(usize) -> bool,
     ) -> Vec<Option<Result<MatchOutcome, MatchError>>> {
-        self.propose(jobs)
-            .into_iter()
-            .zip(jobs)
-            .enumerate()
-            .map(|(index, (proposal, job))| {
-                still_wanted(index).then(|| proposal.map(|p| answer(job, p)))
-            })
+        let proposals = self.propose(jobs);
+        // Asked once the network is done, for every job at once: the verifications below run
+        // side by side.
+        let wanted: Vec<bool> = (0..jobs.len()).map(still_wanted).collect();
+        // Each job's verification is its own, so they run in parallel: one job's serial steps
+        // (its verifier's setup, the selection, the classical fallback's pyramid) then leave
+        // no core idle.
+        proposals
+            .into_par_iter()
+            .zip(jobs.par_iter())
+            .zip(wanted.into_par_iter())
+            .map(|((proposal, job), wanted)| wanted.then(|| proposal.map(|p| answer(job, p))))
             .collect()
     }
 

@@ -216,6 +216,11 @@ pub struct MatchOptions {
     /// about 0.75). Set by callers that lower `min_score` for their own reasons (the
     /// evaluation keeps every answer) to keep the caller's choice.
     pub covered_parts: Option<bool>,
+    /// With several templates in one call: two answers of different templates whose boxes
+    /// overlap more than `max_overlap` are one object, and only the better-scoring one is
+    /// reported ([`super::selection::suppress_across_templates`]; Halcon's `find_shape_models`
+    /// does this across models). Off: each template answers as a call of its own would.
+    pub suppress_across_templates: bool,
 }
 
 /// A `min_score` below this says the caller expects partly covered parts
@@ -262,6 +267,7 @@ impl Default for MatchOptions {
             polarity: Polarity::Same,
             timeout_ms: None,
             covered_parts: None,
+            suppress_across_templates: false,
         }
     }
 }

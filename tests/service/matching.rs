@@ -332,3 +332,63 @@ async fn several_templates_in_one_request_answer_each_by_name() {
     assert!(both.message().contains("both"), "{}", both.message());
     server.shutdown(Duration::from_secs(5)).await;
 }
+
+/// `suppress_across_templates`: two templates cut from one part (a crop and a slightly larger
+/// crop around it) both find that part; asked to, the answer keeps only the better-scoring of
+/// the two, and a third template's part elsewhere stays.
+#[tokio::test(flavor = "multi_thread", worker_threads = 2)]
+async fn overlapping_answers_of_different_templates_can_be_one_object() {
+    let dir = tempfile::tempdir().unwrap();
+    let (server, mut client) = start(&settings(dir.path(), &[]), untrained_model()).await;
+    let frame = scene(200, 200, 3);
+    let crop = |x, y, w, h| png(&image::imageops::crop_imm(&frame, x, y, w, h).to_image());
+    for (id, bytes) in [
+        ("part", crop(30, 40, 36, 40)),
+        ("part-wider", crop(26, 38, 44, 44)),
+        ("elsewhere", crop(120, 110, 36, 40)),
+    ] {
+        client
+            .register_template(register_request(id, bytes))
+            .await
+            .unwrap();
+    }
+    let request = |suppress: bool| proto::MatchRequest {
+        template_ids: vec!["part".into(), "part-wider".into(), "elsewhere".into()],
+        image: encoded(png(&frame)),
+        options: Some(proto::MatchOptions {
+            method: proto::Method::Ncc as i32,
+            max_instances: 1,
+            min_score: 0.5,
+            suppress_across_templates: suppress,
+            ..Default::default()
+        }),
+        ..Default::default()
+    };
+    let ids = |answer: &proto::MatchResponse| -> Vec<String> {
+        answer.poses.iter().map(|p| p.template_id.clone()).collect()
+    };
+    let each = client.r#match(request(false)).await.unwrap().into_inner();
+    let mut found = ids(&each);
+    found.sort();
+    assert_eq!(found, ["elsewhere", "part", "part-wider"], "{each:?}");
+    let score_of = |id: &str| {
+        each.poses
+            .iter()
+            .find(|p| p.template_id == id)
+            .unwrap()
+            .score
+    };
+    let better = if score_of("part") >= score_of("part-wider") {
+        "part"
+    } else {
+        "part-wider"
+    };
+
+    let one_each = client.r#match(request(true)).await.unwrap().into_inner();
+    let mut found = ids(&one_each);
+    found.sort();
+    let mut expected = vec![better, "elsewhere"];
+    expected.sort();
+    assert_eq!(found, expected, "{one_each:?}");
+    server.shutdown(Duration::from_secs(5)).await;
+}

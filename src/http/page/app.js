@@ -85,6 +85,7 @@
     method: byId('method'),
     timeoutMs: byId('timeout-ms'),
     noRefine: byId('no-refine'),
+    suppressAcross: byId('suppress-across'),
     runMatch: byId('run-match'),
     timings: byId('timings'),
     posesCaption: byId('poses-caption'),
@@ -1085,6 +1086,7 @@
     set('timeoutMs', readNumber(el.timeoutMs,
       (v) => Number.isInteger(v) && v >= 1 && v <= 600000, 'a whole number from 1 to 600000'));
     if (el.noRefine.checked) options.noRefine = true;
+    if (el.suppressAcross.checked) options.suppressAcrossTemplates = true;
     return options;
   }
 
