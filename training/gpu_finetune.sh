@@ -16,7 +16,8 @@
 #
 # Needs training/data/corpus (make_corpus.py) and training/data/init.safetensors
 # (`posematch weights export --out training/data/init.safetensors`) beside it. The mix is set
-# by LEVEL (default S1.5), ELONGATED (share, 0.5), ASPECT (largest sx/sy, 2.2), LR (3e-4),
+# by LEVEL (default S1.5), ELONGATED (share, 0.5), ASPECT (largest sx/sy, 2.2), CROWD (share of
+# crowded pairs, 0), LR (3e-4),
 # WARMUP (150), BATCH (1024), MODES (eager,compile); INIT=none trains afresh from random
 # initialisation instead (then e.g. LR=1e-3 WARMUP=500, as the base run). MEASURE=0 skips the
 # measurement and plans with RATE (default 3074, the H200's compiled rate of 2026-11-26) in the
@@ -33,6 +34,7 @@ export PYTHONUNBUFFERED=1
 log="$out/log.txt"
 level=${LEVEL:-S1.5} elongated=${ELONGATED:-0.5} aspect=${ASPECT:-2.2}
 lr=${LR:-3e-4} warmup=${WARMUP:-150} batch=${BATCH:-1024} modes=${MODES:-eager,compile}
+crowd=${CROWD:-0}
 
 if [ -z "${RESUME:-}" ]; then
   rm -rf "$run" && mkdir -p "$run"   # a first call starts a new run
@@ -61,7 +63,7 @@ compile=()
 [ "$mode" = compile ] && compile=(--compile)
 
 python3 train.py --corpus data/corpus --out "$run" "${start[@]}" "${compile[@]}" \
-  --elongated-share "$elongated" --aspect-max "$aspect" --level "$level" \
+  --elongated-share "$elongated" --aspect-max "$aspect" --level "$level" --crowd-share "$crowd" \
   --steps "$steps" --batch "$chosen_batch" --search-size "$size" --lr "$lr" --warmup "$warmup" \
   --minutes "$minutes" --save-every 2 --snapshots "$out" --validate-every 400 --log-every 50 \
   2>&1 | tee -a "$log"

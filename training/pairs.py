@@ -195,6 +195,118 @@ def cut_pairs(bank, batch, level="S1.5", template_size=(36, 36), search_side=224
     return Pairs(*cat)
 
 
+def _axes(angle_deg):
+    """The object's u and v axes on screen (the public pose convention): u = (cos a, -sin a),
+    v = (sin a, cos a)."""
+    a = torch.deg2rad(angle_deg)
+    s, c = torch.sin(a), torch.cos(a)
+    return torch.stack([c, -s], -1), torch.stack([s, c], -1)
+
+
+def _rectangles_apart(a, b, gap):
+    """Whether rotated rectangles a and b ([..., 5] = x, y, angle_deg, width, height in screen
+    pixels) are at least `gap` pixels apart along one of their four edge normals (the separating
+    axis test; touching neighbours with a gap of a pixel pass)."""
+    au, av = _axes(a[..., 2])
+    bu, bv = _axes(b[..., 2])
+    d = b[..., :2] - a[..., :2]
+    apart = torch.zeros(d.shape[:-1], dtype=torch.bool, device=d.device)
+    for n in (au, av, bu, bv):
+        reach_a = (a[..., 3] / 2 * (au * n).sum(-1).abs() + a[..., 4] / 2 * (av * n).sum(-1).abs())
+        reach_b = (b[..., 3] / 2 * (bu * n).sum(-1).abs() + b[..., 4] / 2 * (bv * n).sum(-1).abs())
+        apart |= (d * n).sum(-1).abs() >= reach_a + reach_b + gap
+    return apart
+
+
+def add_crowd(bank, pairs, share, gen=None, max_extra=5, spread=0.15, tries=12, gap=1.0):
+    """Crowded scenes: in `share` of the pairs, 1 to `max_extra` more copies of the same part
+    (the photo box the template was cut from), each at its own angle and at the pair's scales
+    times a factor in [1 - spread, 1 + spread] per axis (near-identical neighbours), pasted with
+    the part's rectangular footprint into the search window wherever it fits whole and lies at
+    least `gap` pixels from every other instance (touching neighbours included). The paper's
+    industrial scenes hold many identical parts; a network trained on one part per image learns
+    to keep one strong peak, and the matcher needs every one.
+
+    Returns `(searches, instances, present)`: the searches with the copies pasted, every
+    instance's pose [B, 1 + max_extra, 5] (the original first) and which are there [B, K]."""
+    searches = pairs.searches.clone()
+    b, _, side, _ = searches.shape
+    device = searches.device
+    th, tw = pairs.templates.shape[-2:]
+    k_all = 1 + max_extra
+    instances = torch.zeros((b, k_all, 5), device=device)
+    instances[:, 0] = pairs.truth
+    present = torch.zeros((b, k_all), dtype=torch.bool, device=device)
+    present[:, 0] = True
+    if share <= 0 or max_extra < 1:
+        return searches, instances, present
+    crowded = torch.rand(b, generator=gen, device=device) < share
+    wanted = torch.randint(1, max_extra + 1, (b,), generator=gen, device=device)
+    # Footprints on screen: x, y, angle, width, height.
+    rects = torch.zeros((b, k_all, 5), device=device)
+    rects[:, 0, :3] = pairs.truth[:, :3]
+    rects[:, 0, 3] = pairs.truth[:, 3] * tw
+    rects[:, 0, 4] = pairs.truth[:, 4] * th
+    lo, hi = HEAD_SCALES
+    last = side - 1.0
+    for k in range(1, k_all):
+        shape = (b, tries)
+        factor = lambda: torch.exp(_uniform(b * tries, math.log(1 - spread), math.log(1 + spread),
+                                            gen, device)).view(shape)
+        sx = (pairs.truth[:, 3:4] * factor()).clamp(lo, hi)
+        sy = (pairs.truth[:, 4:5] * factor()).clamp(lo, hi)
+        angle = _uniform(b * tries, -180.0, 180.0, gen, device).view(shape)
+        w, h = sx * tw, sy * th
+        a = torch.deg2rad(angle)
+        ex = (w * torch.cos(a).abs() + h * torch.sin(a).abs()) / 2
+        ey = (w * torch.sin(a).abs() + h * torch.cos(a).abs()) / 2
+        fits = (2 * ex + 2 <= side) & (2 * ey + 2 <= side)
+        x = ex + (last - 2 * ex).clamp(min=0) * torch.rand(shape, generator=gen, device=device)
+        y = ey + (last - 2 * ey).clamp(min=0) * torch.rand(shape, generator=gen, device=device)
+        candidate = torch.stack([x, y, angle, w, h], -1)  # [B, T, 5]
+        ok = fits & (crowded & (wanted >= k))[:, None]
+        for j in range(k):
+            apart = _rectangles_apart(rects[:, j:j + 1].expand(-1, tries, -1), candidate, gap)
+            ok &= apart | ~present[:, j:j + 1]
+        first = ok.float().argmax(1)
+        chosen = ok.any(1)
+        pick = candidate[torch.arange(b, device=device), first]
+        rects[:, k] = torch.where(chosen[:, None], pick, rects[:, k])
+        present[:, k] = chosen
+        instances[:, k] = torch.stack([pick[:, 0], pick[:, 1], pick[:, 2], pick[:, 3] / tw,
+                                       pick[:, 4] / th], -1) * chosen[:, None]
+    rows = present[:, 1:].any(1).nonzero().squeeze(1)
+    if rows.numel() == 0:
+        return searches, instances, present
+    pixels = bank.pixels[pairs.photos[rows]].float() / 255.0
+    hmax, wmax = pixels.shape[-2:]
+    x0, y0, bw, bh = (pairs.boxes[rows, i].view(-1, 1, 1) for i in range(4))
+    cx, cy = x0 + (bw - 1) / 2, y0 + (bh - 1) / 2
+    jj, ii = torch.meshgrid(torch.arange(side, device=device, dtype=torch.float32),
+                            torch.arange(side, device=device, dtype=torch.float32), indexing="ij")
+    out = searches[rows]
+    for k in range(1, k_all):
+        here = present[rows, k]
+        if not here.any():
+            continue
+        r = rects[rows, k]
+        x, y, angle, w, h = (r[:, i].view(-1, 1, 1) for i in range(5))
+        a = torch.deg2rad(angle)
+        s, c = torch.sin(a), torch.cos(a)
+        dx, dy = ii - x, jj - y
+        u = dx * c - dy * s  # along the object's u axis, screen pixels
+        v = dx * s + dy * c
+        inside = (u.abs() <= w / 2) & (v.abs() <= h / 2) & here.view(-1, 1, 1)
+        px = cx + u * bw / w
+        py = cy + v * bh / h
+        grid = torch.stack([px / (wmax - 1) * 2 - 1, py / (hmax - 1) * 2 - 1], dim=-1)
+        copy = F.grid_sample(pixels, grid, mode="bilinear", padding_mode="border",
+                             align_corners=True)
+        out = torch.where(inside[:, None], copy, out)
+    searches[rows] = out
+    return searches, instances, present
+
+
 def _cut_templates(pixels, x0, y0, bw, bh, tw, th):
     """Box (x0, y0, bw, bh) of each photo resized to tw x th (antialiased bilinear)."""
     k = pixels.shape[0]
@@ -241,34 +353,47 @@ def jitter(searches, gen=None):
     return x.clamp(0.0, 1.0)
 
 
-def render_labels(truth, width, height, template_size=(36, 36)):
-    """src/train/labels.rs for one instance per image: [B, 6, H, W] = heatmap, valid, sign, cos,
-    scale_x, scale_y. The Gaussian is drawn only inside the same square window as there
+def render_labels(truth, width, height, template_size=(36, 36), present=None):
+    """src/train/labels.rs: [B, 6, H, W] = heatmap, valid, sign, cos, scale_x, scale_y for
+    `truth` [B, 5] (one instance per image) or [B, K, 5] with `present` [B, K] (crowded scenes:
+    the heatmap is the maximum over instances and each pixel's parameters are its strongest
+    instance's, as there). The Gaussian is drawn only inside the same square window as there
     (3.5 sigma x the larger scale), so the maps agree to rounding."""
+    if truth.dim() == 2:
+        truth = truth[:, None]
+    if present is None:
+        present = torch.ones(truth.shape[:2], dtype=torch.bool, device=truth.device)
     device = truth.device
     tw, th = template_size
     sigma_u, sigma_v = tw * SIGMA_FRACTION, th * SIGMA_FRACTION
-    x, y, angle, sx, sy = (truth[:, k].view(-1, 1, 1) for k in range(5))
-    a = torch.deg2rad(angle)
-    s, c = torch.sin(a), torch.cos(a)
-    sxc, syc = sx.clamp(min=1e-3), sy.clamp(min=1e-3)
-    reach = 3.5 * max(sigma_u, sigma_v) * torch.maximum(sxc, syc)
     jj, ii = torch.meshgrid(torch.arange(height, device=device, dtype=torch.float32),
                             torch.arange(width, device=device, dtype=torch.float32),
                             indexing="ij")
-    x0 = torch.floor(x - reach).clamp(min=0)
-    y0 = torch.floor(y - reach).clamp(min=0)
-    x1 = torch.ceil(x + reach).clamp(max=width - 1)
-    y1 = torch.ceil(y + reach).clamp(max=height - 1)
-    window = (ii >= x0) & (ii <= x1) & (jj >= y0) & (jj <= y1)
-    dx, dy = ii - x, jj - y
-    u = (c * dx - s * dy) / sxc
-    v = (s * dx + c * dy) / syc
-    g = torch.exp(-0.5 * ((u / sigma_u) ** 2 + (v / sigma_v) ** 2)) * window
-    valid = (g >= VALID_THRESHOLD).float()
-    sign = valid * (angle > 0).float()
-    cos = valid * c
-    return torch.stack([g, valid, sign, cos, valid * sx, valid * sy], dim=1)
+    heat = torch.zeros((truth.shape[0], height, width), device=device)
+    params = torch.zeros((truth.shape[0], 4, height, width), device=device)
+    for k in range(truth.shape[1]):
+        x, y, angle, sx, sy = (truth[:, k, i].view(-1, 1, 1) for i in range(5))
+        a = torch.deg2rad(angle)
+        s, c = torch.sin(a), torch.cos(a)
+        sxc, syc = sx.clamp(min=1e-3), sy.clamp(min=1e-3)
+        reach = 3.5 * max(sigma_u, sigma_v) * torch.maximum(sxc, syc)
+        x0 = torch.floor(x - reach).clamp(min=0)
+        y0 = torch.floor(y - reach).clamp(min=0)
+        x1 = torch.ceil(x + reach).clamp(max=width - 1)
+        y1 = torch.ceil(y + reach).clamp(max=height - 1)
+        window = (ii >= x0) & (ii <= x1) & (jj >= y0) & (jj <= y1)
+        dx, dy = ii - x, jj - y
+        u = (c * dx - s * dy) / sxc
+        v = (s * dx + c * dy) / syc
+        g = torch.exp(-0.5 * ((u / sigma_u) ** 2 + (v / sigma_v) ** 2)) * window
+        g = g * present[:, k].view(-1, 1, 1)
+        stronger = g > heat
+        heat = torch.where(stronger, g, heat)
+        own = torch.stack([(angle > 0).float().expand_as(g), c.expand_as(g), sx.expand_as(g),
+                           sy.expand_as(g)], 1)
+        params = torch.where(stronger[:, None], own, params)
+    valid = (heat >= VALID_THRESHOLD).float()
+    return torch.cat([heat[:, None], valid[:, None], valid[:, None] * params], dim=1)
 
 
 def losses(maps, labels, eps=1e-6):

@@ -82,8 +82,9 @@ def parse_args(argv=None):
     a.add_argument("--resume", action="store_true", help="continue from --out/checkpoint.pt")
     a.add_argument("--init-weights",
                    help="start from these weights instead of random initialisation: a "
-                        ".safetensors file from `posematch weights export` (our own weights "
-                        "only, never the authors'); a fresh optimizer and schedule")
+                        ".safetensors file from `posematch weights export` or a .pth of "
+                        "train.py or interpolate.py (our own weights only, never the authors'); "
+                        "a fresh optimizer and schedule")
     a.add_argument("--steps", type=int, default=20000, help="steps of the whole schedule (all runs)")
     a.add_argument("--minutes", type=float, default=8.0, help="stop this run after this many minutes")
     a.add_argument("--batch", type=int, default=64)
@@ -93,6 +94,9 @@ def parse_args(argv=None):
                    help="share of pairs showing elongated parts (aspect log-uniform up to --aspect-max; pairs.cut_pairs)")
     a.add_argument("--aspect-max", type=float, default=2.5,
                    help="largest sx/sy (and sy/sx) of the elongated pairs")
+    a.add_argument("--crowd-share", type=float, default=0.0,
+                   help="share of pairs showing 1 to --crowd-max more copies of the part (pairs.add_crowd)")
+    a.add_argument("--crowd-max", type=int, default=5, help="most extra copies in a crowded pair")
     a.add_argument("--lr", type=float, default=1e-3)
     a.add_argument("--weight-decay", type=float, default=0.05)
     a.add_argument("--warmup", type=int, default=500)
@@ -114,6 +118,8 @@ def parse_args(argv=None):
     args = a.parse_args(argv)
     if args.batch < 1 or args.steps < 1 or args.minutes <= 0:
         a.error("--batch, --steps and --minutes must be positive")
+    if not 0.0 <= args.crowd_share <= 1.0 or not 1 <= args.crowd_max <= 16:
+        a.error("--crowd-share must lie in [0, 1] and --crowd-max in 1..16")
     if args.search_size % 4 or not 64 <= args.search_size <= 1024:
         a.error("--search-size must be a multiple of 4 in 64..1024")
     for name in args.level.split(","):
@@ -148,9 +154,14 @@ def read_safetensors(path):
 
 
 def load_init_weights(model, path):
-    """Loads `path` into `model`; every parameter and buffer must be there with its shape except
+    """Loads `path` (.safetensors or .pth) into `model`; every parameter and buffer must be there with its shape except
     BatchNorm's `num_batches_tracked` counters (training bookkeeping, which our export omits)."""
-    tensors = read_safetensors(path)
+    if str(path).endswith(".pth"):  # train.py's export or interpolate.py's mix
+        tensors = torch.load(path, map_location="cpu", weights_only=True)
+        if not isinstance(tensors, dict):
+            raise SystemExit(f"--init-weights {path}: not a state dict")
+    else:
+        tensors = read_safetensors(path)
     expected = model.state_dict()
     problems = [f"{k}: missing" for k in expected
                 if k not in tensors and not k.endswith("num_batches_tracked")]
@@ -270,8 +281,11 @@ def train(args):
                 batch = P.cut_pairs(bank, args.batch, levels, search_side=args.search_size, gen=gen,
                                     elongated_share=args.elongated_share,
                                     aspect_max=args.aspect_max)
-                searches = P.jitter(batch.searches, gen)
-                labels = P.render_labels(batch.truth, args.search_size, args.search_size)
+                searches, instances, present = P.add_crowd(bank, batch, args.crowd_share, gen,
+                                                           max_extra=args.crowd_max)
+                searches = P.jitter(searches, gen)
+                labels = P.render_labels(instances, args.search_size, args.search_size,
+                                         present=present)
                 templates = normalise(batch.templates)
                 searches = normalise(searches)
                 if device.type == "cuda":

@@ -125,6 +125,68 @@ def test_labels_follow_the_pose():
     assert maps[1, 2, 32, 32] == 1.0
 
 
+def test_crowded_pairs_paste_whole_disjoint_copies_and_label_every_one(bank):
+    photos, b = bank
+    gen = torch.Generator().manual_seed(11)
+    pairs = P.cut_pairs(b, 16, "S1.5", search_side=160, gen=gen, elongated_share=0.5, aspect_max=2.2)
+    searches, instances, present = P.add_crowd(b, pairs, 1.0, gen, max_extra=4)
+    assert present[:, 0].all() and torch.equal(instances[:, 0], pairs.truth)
+    assert present[:, 1:].sum() >= 16, "most crowded pairs should hold extra copies"
+    rng = np.random.default_rng(1)
+    untouched = torch.ones(searches.shape[0], 160, 160, dtype=torch.bool)
+    jj, ii = torch.meshgrid(torch.arange(160.0), torch.arange(160.0), indexing="ij")
+    for k in range(16):
+        photo = photos[int(pairs.photos[k])]
+        x0, y0, bw, bh = pairs.boxes[k].double().tolist()
+        cx, cy = x0 + (bw - 1) / 2, y0 + (bh - 1) / 2
+        rects = []
+        for i in present[k].nonzero().squeeze(1).tolist():
+            x, y, angle, sx, sy = instances[k, i].double().tolist()
+            w, h = sx * 36, sy * 36
+            rects.append(torch.tensor([x, y, angle, w, h], dtype=torch.float32))
+            # Whole inside the window.
+            a = math.radians(angle)
+            ex = (w * abs(math.cos(a)) + h * abs(math.sin(a))) / 2
+            ey = (w * abs(math.sin(a)) + h * abs(math.cos(a))) / 2
+            assert ex - 1e-3 <= x <= 159 - ex + 1e-3 and ey - 1e-3 <= y <= 159 - ey + 1e-3
+            # Near-identical: the pair's scales within 15 % on each axis.
+            assert abs(math.log(sx / pairs.truth[k, 3].item())) <= math.log(1 / 0.85) + 1e-4
+            if i == 0:
+                continue
+            s, c = math.sin(a), math.cos(a)
+            for u, v in [(0.0, 0.0)] + [tuple(rng.uniform(-0.45, 0.45, 2) * (w, h)) for _ in range(20)]:
+                # Template-frame offset (u, v) in screen pixels lands at the pose's point ...
+                px, py = x + u * c + v * s, y - u * s + v * c
+                qi, qj = int(round(px)), int(round(py))
+                du, dv = (qi - x) * c - (qj - y) * s, (qi - x) * s + (qj - y) * c
+                if abs(du) > w / 2 - 0.01 or abs(dv) > h / 2 - 0.01:
+                    continue
+                # ... and shows the box's pixel there (bilinear, as the window's own part).
+                expected = numpy_bilinear(photo, cx + du * bw / w, cy + dv * bh / h)
+                np.testing.assert_allclose(searches[k, :, qj, qi].double().numpy(), expected, atol=2e-5)
+            dx, dy = ii - x, jj - y
+            inside = ((dx * c - dy * s).abs() <= w / 2) & ((dx * s + dy * c).abs() <= h / 2)
+            untouched[k] &= ~inside
+        for i in range(len(rects)):
+            for j in range(i + 1, len(rects)):
+                assert P._rectangles_apart(rects[i], rects[j], 1.0 - 1e-3), (k, i, j)
+    # Outside every pasted copy the window is the photo as cut.
+    assert torch.equal(searches[untouched[:, None].expand_as(searches)],
+                       pairs.searches[untouched[:, None].expand_as(searches)])
+    labels = P.render_labels(instances, 160, 160, present=present)
+    for k in range(16):
+        for i in present[k].nonzero().squeeze(1).tolist():
+            x, y, _, sx, sy = instances[k, i].tolist()
+            qi, qj = int(round(x)), int(round(y))
+            assert labels[k, 0, qj, qi] > 0.95 and labels[k, 1, qj, qi] == 1.0
+            assert labels[k, 4, qj, qi] == pytest.approx(sx) and labels[k, 5, qj, qi] == pytest.approx(sy)
+    # One instance per image renders as before; share 0 changes nothing.
+    assert torch.equal(P.render_labels(pairs.truth, 160, 160),
+                       P.render_labels(instances[:, :1], 160, 160, present=present[:, :1]))
+    plain, _, alone = P.add_crowd(b, pairs, 0.0, gen)
+    assert torch.equal(plain, pairs.searches) and alone[:, 1:].sum() == 0
+
+
 def test_a_short_cpu_run_lowers_the_loss(bank, tmp_path):
     photos, _ = bank
     corpus = tmp_path / "corpus"
@@ -147,7 +209,7 @@ def test_a_short_cpu_run_lowers_the_loss(bank, tmp_path):
     assert losses[-1] < 0.6 * losses[0], losses
     # A bounded run on fresh pairs, then resumed: the step count and the schedule continue.
     args = T.parse_args(common + ["--out", str(out), "--steps", "30", "--log-every", "10",
-                                  "--validate-every", "10"])
+                                  "--validate-every", "10", "--crowd-share", "0.5"])
     assert T.train(args) == 30
     snapshots = tmp_path / "snapshots"
     args = T.parse_args(common + ["--out", str(out), "--steps", "40", "--log-every", "5", "--resume",
@@ -208,10 +270,21 @@ def test_init_weights_load_exactly_and_refuse_what_does_not_fit(tmp_path):
     s = normalise(torch.rand(2, 3, 64, 64))
     with torch.no_grad():
         assert torch.equal(model(t, s), source(t, s))
+    # train.py's and interpolate.py's .pth load alike (a cool-down starts from a mix).
+    pth = tmp_path / "ours.pth"
+    T.export_weights(source, pth)
+    torch.manual_seed(3)
+    model = Tdcm().eval()
+    T.load_init_weights(model, pth)
+    with torch.no_grad():
+        assert torch.equal(model(t, s), source(t, s))
     del state["conv1.weight"]
     write_safetensors(state, path)
     with pytest.raises(SystemExit, match="conv1.weight: missing"):
         T.load_init_weights(Tdcm(), path)
+    torch.save(state, pth)
+    with pytest.raises(SystemExit, match="conv1.weight: missing"):
+        T.load_init_weights(Tdcm(), pth)
 
 
 def test_init_weights_read_what_posematch_exports(tmp_path):
