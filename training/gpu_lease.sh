@@ -22,7 +22,7 @@ wide=${2:?minutes of the wide-scale run}
 cool=${3:?minutes of the cool-down}
 here=$(cd "$(dirname "$0")" && pwd)
 cd "$here"
-export MEASURE=0 MODES=compile RATE=${RATE:-2900} ASPECT=${ASPECT:-3.5} ELONGATED=${ELONGATED:-0.5}
+export MEASURE=0 MODES=${MODES:-compile} RATE=${RATE:-2900} ASPECT=${ASPECT:-3.5} ELONGATED=${ELONGATED:-0.5}
 export CROWD=${CROWD:-0.3}
 schedule() { awk -v m="$1" 'BEGIN { s = m - 0.9; if (s < m / 2) s = m / 2; printf "%.2f", s }'; }
 
