@@ -10,9 +10,10 @@
 #   training/gpu_lease.sh OUT WIDE_MINUTES COOL_MINUTES
 #
 # The mix is the shipped recipe's unless the environment says otherwise: WIDE_LEVEL (S1.5,S2.5),
-# COOL_LEVEL (S1.5), ASPECT (3.5), ELONGATED (0.5), CROWD (share of crowded pairs, both runs,
-# 0.3), ALPHA (0.5), WIDE_LR (3e-4), COOL_LR (1e-4), RATE (planned pairs/s, compiled, 2900).
-# Each schedule is planned to end at its floor a minute before its run's time is up (the
+# COOL_LEVEL (S1.5), ASPECT (3.5), ELONGATED (0.5), CROWD (share of crowded pairs, 0.3),
+# COOL_CROWD (the cool-down's, CROWD; 0 keeps the cool-down single-instance), ALPHA (0.5),
+# WIDE_LR (3e-4), COOL_LR (1e-4), RATE (planned pairs/s, compiled, 2900).
+# Each schedule is planned to end at its floor 0.9 minutes before its run's time is up (the
 # compile warm-up counts against the minutes). Choose between the candidate, the wide run, other
 # alphas (interpolate.py on the CPU) and the shipped default on the tuning set, never on held-out
 # data.
@@ -33,5 +34,5 @@ tuned=$(ls -v "$out"/a/weights-step*.pth 2>/dev/null | tail -n 1)
 mix=/tmp/posematch-mix.pth
 python3 interpolate.py --base data/init.safetensors --tuned "$tuned" --alpha "${ALPHA:-0.5}" \
   --out "$mix" 2>&1 | tee -a "$out/a/log.txt" || exit 1
-INIT=$mix LEVEL=${COOL_LEVEL:-S1.5} LR=${COOL_LR:-1e-4} WARMUP=50 \
+INIT=$mix LEVEL=${COOL_LEVEL:-S1.5} LR=${COOL_LR:-1e-4} WARMUP=50 CROWD=${COOL_CROWD:-$CROWD} \
   ./gpu_finetune.sh "$out/b" "$cool" "$(schedule "$cool")"
