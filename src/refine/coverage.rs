@@ -4,9 +4,12 @@
 //! clamp, a cable, a label): the covered pixels add image variance and no covariance, and the
 //! chance-corrected score of a clearly visible part falls from above 0.9 to about 0.5. Halcon's
 //! score is the visible share of the model; this is ours: the share of the template's structure
-//! whose cell matches ([`Coverage::visible`]), and how well the visible cells match together
-//! ([`Coverage::visible_similarity`]). The verifier turns both into one score
-//! (`matcher/verification.rs`, docs/accuracy.md "What a score means").
+//! whose cell matches ([`CoverageReading::visible`]), and how well the visible cells match
+//! ([`CoverageReading::visible_similarity`]), together or each cell with its own gain and
+//! offset: a light that falls across the part (a lamp on one side, a reflector) changes the
+//! gain from cell to cell, which one ZNCC over all the cells counts as mismatch. The verifier
+//! turns both into one score (`matcher/verification.rs`, docs/accuracy.md "What a score
+//! means").
 
 use super::correlate::{Affine, PointLanes};
 use crate::geometry::Pose;
@@ -87,7 +90,13 @@ pub(crate) struct Coverage {
 pub(crate) struct CoverageReading {
     /// Share (by structure) of the template whose cell matches, in [0, 1].
     pub visible: f32,
-    /// ZNCC over the matching cells together, in [-1, 1].
+    /// How well the matching cells match, in [-1, 1]: the better of one ZNCC over them
+    /// together (which also counts the contrast between cells: what finds a part with a
+    /// quarter covered) and their own ZNCCs, each cell with its own gain and offset, averaged
+    /// by their points (which holds where light varies across the part, and one ZNCC falls).
+    /// For unrelated patches the average spreads as one ZNCC over the same points does (an
+    /// average of k independent correlations of n points varies as one of k·n), so the same
+    /// chance level holds.
     pub visible_similarity: f32,
     /// Share of the support points in the matching cells, in (0, 1].
     pub visible_points: f32,
@@ -161,6 +170,7 @@ impl Coverage {
         }
         let mut visible = 0.0f32;
         let mut together = CellSums::default();
+        let mut cells_similarity = 0.0f64;
         for cell in &self.cells {
             let sums = self.sums(cell, image, pose);
             let matches = if cell.weight > 0.0 {
@@ -171,11 +181,16 @@ impl Coverage {
             visible += cell.weight * matches;
             if matches >= 1.0 {
                 together.add(&sums);
+                cells_similarity += f64::from(sums.zncc()) * sums.n;
             }
         }
         Some(CoverageReading {
             visible: (visible / self.total_weight).clamp(0.0, 1.0),
-            visible_similarity: together.zncc(),
+            visible_similarity: if together.n > 0.0 {
+                together.zncc().max((cells_similarity / together.n) as f32)
+            } else {
+                -1.0
+            },
             visible_points: (together.n / self.points as f64) as f32,
         })
     }
@@ -232,6 +247,27 @@ mod tests {
         assert!((0.7..0.82).contains(&covered.visible), "{covered:?}");
         assert!(covered.visible_similarity > 0.999, "{covered:?}");
         assert!((covered.visible_points - 0.75).abs() < 0.07, "{covered:?}");
+    }
+
+    #[test]
+    fn light_falling_across_the_part_leaves_every_cell_matching() {
+        let template = textured(36, 36, 1);
+        let pose = at(40.0 + 17.5, 30.0 + 17.5);
+        let coverage = Coverage::new(&template);
+        let clean = scene(&template, false);
+        // Gain 1.3 at the part's left edge, 0.4 at its right, as a lamp on one side.
+        let lit = GrayImage32::from_fn(120, 100, |x, y| {
+            let gain = 1.3 - 0.9 * ((x as f32 - 40.0) / 35.0).clamp(0.0, 1.0);
+            clean.values[y * 120 + x] * gain
+        });
+        let whole = crate::refine::TemplatePoints::support(&template).score(&lit, &pose);
+        let reading = coverage.measure(&lit, &pose).unwrap();
+        assert!(reading.visible > 0.999, "{reading:?}");
+        assert!(reading.visible_similarity > 0.95, "{reading:?}");
+        assert!(
+            whole < reading.visible_similarity - 0.02,
+            "one ZNCC over the part {whole}, the cells' {reading:?}"
+        );
     }
 
     #[test]
