@@ -23,16 +23,6 @@ sys.path.insert(0, str(Path(__file__).resolve().parent))
 import train as T  # noqa: E402
 
 
-def read_weights(path):
-    """A state dict from a `.safetensors` (`posematch weights export`) or a `.pth` (train.py)."""
-    if str(path).endswith(".safetensors"):
-        return T.read_safetensors(path)
-    state = torch.load(path, map_location="cpu", weights_only=True)
-    if not isinstance(state, dict):
-        raise SystemExit(f"{path}: not a state dict")
-    return state
-
-
 def interpolate(base, tuned, alpha):
     """`(1 - alpha) * base + alpha * tuned` for every floating-point tensor of `tuned`; the two
     must hold the same floating-point tensors with the same shapes."""
@@ -55,7 +45,7 @@ def main(argv=None):
     a.add_argument("--alpha", type=float, required=True, help="share of --tuned, 0..1")
     a.add_argument("--out", required=True, help=".pth to write (posematch weights import reads it)")
     args = a.parse_args(argv)
-    mixed = interpolate(read_weights(args.base), read_weights(args.tuned), args.alpha)
+    mixed = interpolate(T.read_weights(args.base), T.read_weights(args.tuned), args.alpha)
     T.atomic_save(mixed, args.out)
     print(f"wrote {args.out}: {1 - args.alpha:g} x {args.base} + {args.alpha:g} x {args.tuned}")
 

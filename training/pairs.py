@@ -228,7 +228,11 @@ def add_crowd(bank, pairs, share, gen=None, max_extra=5, spread=0.15, tries=12, 
     to keep one strong peak, and the matcher needs every one.
 
     Returns `(searches, instances, present)`: the searches with the copies pasted, every
-    instance's pose [B, 1 + max_extra, 5] (the original first) and which are there [B, K]."""
+    instance's pose [B, K, 5] (the original first; K = 1 + max_extra, or 1 with share 0: the
+    searches themselves, uncopied) and which are there [B, K]."""
+    if share <= 0 or max_extra < 1:  # one instance each: nothing to copy or label twice
+        alone = torch.ones((pairs.truth.shape[0], 1), dtype=torch.bool, device=pairs.truth.device)
+        return pairs.searches, pairs.truth[:, None], alone
     searches = pairs.searches.clone()
     b, _, side, _ = searches.shape
     device = searches.device
@@ -238,8 +242,6 @@ def add_crowd(bank, pairs, share, gen=None, max_extra=5, spread=0.15, tries=12, 
     instances[:, 0] = pairs.truth
     present = torch.zeros((b, k_all), dtype=torch.bool, device=device)
     present[:, 0] = True
-    if share <= 0 or max_extra < 1:
-        return searches, instances, present
     crowded = torch.rand(b, generator=gen, device=device) < share
     wanted = torch.randint(1, max_extra + 1, (b,), generator=gen, device=device)
     # Footprints on screen: x, y, angle, width, height.

@@ -153,15 +153,22 @@ def read_safetensors(path):
     return tensors
 
 
+def read_weights(path):
+    """A state dict from a `.safetensors` (`posematch weights export`) or a `.pth` (train.py's
+    export, interpolate.py's mix)."""
+    if str(path).endswith(".safetensors"):
+        return read_safetensors(path)
+    state = torch.load(path, map_location="cpu", weights_only=True)
+    if not isinstance(state, dict):
+        raise SystemExit(f"{path}: not a state dict")
+    return state
+
+
 def load_init_weights(model, path):
-    """Loads `path` (.safetensors or .pth) into `model`; every parameter and buffer must be there with its shape except
-    BatchNorm's `num_batches_tracked` counters (training bookkeeping, which our export omits)."""
-    if str(path).endswith(".pth"):  # train.py's export or interpolate.py's mix
-        tensors = torch.load(path, map_location="cpu", weights_only=True)
-        if not isinstance(tensors, dict):
-            raise SystemExit(f"--init-weights {path}: not a state dict")
-    else:
-        tensors = read_safetensors(path)
+    """Loads `path` (see `read_weights`) into `model`; every parameter and buffer must be there
+    with its shape except BatchNorm's `num_batches_tracked` counters (training bookkeeping,
+    which our export omits)."""
+    tensors = read_weights(path)
     expected = model.state_dict()
     problems = [f"{k}: missing" for k in expected
                 if k not in tensors and not k.endswith("num_batches_tracked")]
