@@ -131,16 +131,24 @@ fn main() {
         })
         .collect();
     let device = select_device().expect("BURN_DEVICE names a compiled backend");
-    let mut models = vec![("default", WeightsSource::Embedded.load(&device).unwrap())];
+    // Each model with its training record, as the CLI and the service load it.
+    let with_record = |source: WeightsSource| {
+        let model = source
+            .load(&device)
+            .unwrap_or_else(|e| panic!("{source}: {e}"));
+        (model, source.trained_on().unwrap_or_else(|e| panic!("{e}")))
+    };
+    let mut models = vec![("default", with_record(WeightsSource::Embedded))];
     let official =
         PathBuf::from(env!("CARGO_MANIFEST_DIR")).join("../shared/reference/tdcm-official.pth");
     if let Ok(model) = load_weights(&official, &device) {
-        models.push(("official", model));
+        models.push(("official", (model, None)));
     }
     if let Ok(candidate) = std::env::var("POSEMATCH_BENCH_WEIGHTS") {
-        let model = load_weights(PathBuf::from(&candidate).as_path(), &device)
-            .unwrap_or_else(|e| panic!("POSEMATCH_BENCH_WEIGHTS={candidate}: {e}"));
-        models.push(("candidate", model));
+        models.push((
+            "candidate",
+            with_record(WeightsSource::File(PathBuf::from(candidate))),
+        ));
     }
     // `classical` alone runs only the classical matcher on the large frame.
     let classical_only = filter.as_deref() == Some("classical");
@@ -159,10 +167,11 @@ fn main() {
     let runs = models
         .iter()
         .flat_map(|(name, model)| precisions.iter().map(move |p| (*name, model, *p)));
-    for (name, model, precision) in runs {
+    for (name, (model, trained_on), precision) in runs {
         // Each model's peak on its own (the previous matcher and its buffers are gone).
         reset_peak_rss();
         let mut matcher = Matcher::new(model.clone(), device.clone(), InputConvention::ImagenetRgb)
+            .with_trained_on(trained_on.clone())
             .with_precision(precision)
             .unwrap_or_else(|e| panic!("{e}"));
         let precision = matcher.network().precision().arithmetic();

@@ -67,4 +67,6 @@ python3 train.py --corpus data/corpus --out "$run" "${start[@]}" "${compile[@]}"
   --steps "$steps" --batch "$chosen_batch" --search-size "$size" --lr "$lr" --warmup "$warmup" \
   --minutes "$minutes" --save-every 2 --snapshots "$out" --validate-every 400 --log-every 50 \
   2>&1 | tee -a "$log"
+# What the weights were trained on (posematch weights import --trained-on), to the last save.
+cp "$run/trained_on.json" "$out/" 2>/dev/null
 ls -la "$out"

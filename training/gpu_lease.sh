@@ -6,6 +6,8 @@
 #
 #   OUT/a/log.txt, OUT/a/weights-step<N>.pth   the wide-scale run (every 2 minutes and its end)
 #   OUT/b/log.txt, OUT/b/weights-step<N>.pth   the cool-down from the mix (its end: the candidate)
+#   OUT/a/trained_on.json, OUT/b/trained_on.json  each run's training record: import the candidate
+#     with --trained-on default --trained-on OUT/a/trained_on.json --trained-on OUT/b/trained_on.json
 #
 #   training/gpu_lease.sh OUT WIDE_MINUTES COOL_MINUTES
 #

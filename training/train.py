@@ -9,6 +9,7 @@ there with the same schedule. See training/README.md for the whole sequence.
 """
 
 import argparse
+import json
 import math
 import os
 import shutil
@@ -63,6 +64,15 @@ def atomic_save(obj, path):
     tmp = Path(str(path) + ".tmp")
     torch.save(obj, tmp)
     with open(tmp, "rb") as f:
+        os.fsync(f.fileno())
+    os.replace(tmp, path)
+
+
+def atomic_write_text(path, text):
+    tmp = Path(str(path) + ".tmp")
+    with open(tmp, "w") as f:
+        f.write(text)
+        f.flush()
         os.fsync(f.fileno())
     os.replace(tmp, path)
 
@@ -130,13 +140,43 @@ def parse_args(argv=None):
     return args
 
 
+def trained_on(args, pairs_seen):
+    """What this run's pairs were drawn from, as `posematch weights import --trained-on` reads it
+    (src/model/network/trained_on.rs): `throughout` the shapes every pair could take (the
+    scale range all of the run's levels share), `seen` everything any pair could (the widest
+    level, its independent axis scales, elongated parts). On the template grid; axis scales
+    are object side over grid side."""
+    ranges = [P.LEVELS[name] for name in args.level.split(",")]
+    shared = (max(lo for lo, _ in ranges), min(hi for _, hi in ranges))
+    widest = (min(lo for lo, _ in ranges), max(hi for _, hi in ranges))
+    seen_aspect = widest[1] / widest[0]
+    if args.elongated_share > 0:
+        # Elongated pairs are kept only within what the heads express (P.HEAD_SCALES).
+        head_lo, head_hi = P.HEAD_SCALES
+        seen_aspect = max(seen_aspect, min(args.aspect_max, head_hi / head_lo))
+    crowd = f", {100 * args.crowd_share:.0f} % crowded (up to {1 + args.crowd_max} parts)" \
+        if args.crowd_share > 0 else ""
+    elongated = f", {100 * args.elongated_share:.0f} % elongated (aspect to {args.aspect_max})" \
+        if args.elongated_share > 0 else ""
+    start = f"from {args.init_weights}" if args.init_weights else "from random initialisation"
+    return {
+        "throughout": {"grid_scales": list(shared), "aspect_max": shared[1] / shared[0]},
+        "seen": {"grid_scales": list(widest), "aspect_max": seen_aspect},
+        "template_sides": [[36, 36]],
+        "parts_per_window_max": 1 + args.crowd_max if args.crowd_share > 0 else 1,
+        "search_sides": [args.search_size],
+        "pairs": pairs_seen,
+        "runs": [f"{time.strftime('%Y-%m-%d')} training/train.py: {pairs_seen} pairs, {args.level}, "
+                 f"search {args.search_size} px{elongated}{crowd}, {start}"],
+    }
+
+
 SAFETENSORS_DTYPES = {"F32": np.float32, "F16": np.float16, "I64": np.int64}
 
 
 def read_safetensors(path):
     """A safetensors file as {name: CPU tensor}, read without the `safetensors` package (the GPU
     machine may lack it): an 8-byte little-endian header length, a JSON header, raw data."""
-    import json
     raw = Path(path).read_bytes()
     length = int.from_bytes(raw[:8], "little")
     header = json.loads(raw[8:8 + length])
@@ -269,6 +309,7 @@ def train(args):
             "args": vars(args),
         }, checkpoint)
         export_weights(model, out / "weights.pth")
+        atomic_write_text(out / "trained_on.json", json.dumps(trained_on(args, pairs_seen), indent=1))
         if args.snapshots:
             Path(args.snapshots).mkdir(parents=True, exist_ok=True)
             shutil.copyfile(out / "weights.pth", Path(args.snapshots) / f"weights-step{step}.pth")

@@ -16,7 +16,7 @@ use clap::{Args, Parser, Subcommand};
 use crate::imaging::{DecodeError, ImageLimits, InputConvention, decode_image_file};
 use crate::matcher::{MatchError, Matcher, Polarity, TemplateMask};
 use crate::model::{
-    DeviceError, LoadError, Precision, WeightsSource, load_weights, save_weights, select_device,
+    DeviceError, LoadError, Precision, TrainedOn, WeightsSource, save_weights, select_device,
 };
 
 pub use match_cmd::MatchArgs;
@@ -56,10 +56,26 @@ pub enum WeightsCommand {
     /// Convert a PyTorch checkpoint of the official model (.pth or .safetensors) into
     /// PoseMatch's own format (.bpk), checking it against the architecture.
     Import {
+        /// A .pth/.pt, .safetensors or .bpk file (`default`: the embedded weights, e.g. to
+        /// give them another record).
         #[arg(long = "from")]
         from: PathBuf,
         #[arg(long)]
         out: PathBuf,
+        /// What the weights were trained on, kept in the written file (models/README.md): a
+        /// training record (`trained_on.json`, which `training/train.py` writes beside
+        /// `weights.pth`), or weights whose record they inherit (`default`, a .bpk: the weights
+        /// a fine-tune started from or was mixed with). Repeat to combine, oldest first: the
+        /// file records everything any of them saw, and as trained throughout what all did.
+        #[arg(long = "trained-on", value_name = "RECORD")]
+        trained_on: Vec<PathBuf>,
+    },
+    /// Print what weights (default: the embedded ones) were trained on, as the file records it
+    /// (JSON; nothing recorded: the weights are trusted everywhere).
+    Show {
+        /// `default` (embedded), or a .bpk/.pth/.safetensors file.
+        #[arg(default_value = "default")]
+        weights: String,
     },
     /// Write weights (default: the embedded ones) as a .safetensors file with the official
     /// checkpoint's tensor names and layouts, which `training/train.py --init-weights` starts a
@@ -184,6 +200,7 @@ pub fn load_model(args: &ModelArgs) -> Result<Matcher, CliError> {
     let device = select_device()?;
     let model = args.weights.load(&device)?;
     Matcher::new(model, device, args.convention)
+        .with_trained_on(args.weights.trained_on()?)
         .with_precision(args.precision)
         .map_err(|e| CliError::Usage(e.to_string()))
 }
@@ -197,11 +214,29 @@ pub fn run(cli: Cli) -> Result<(), CliError> {
         Command::Serve(args) => serve_cmd::run(args),
         Command::Train(args) => train_cmd::run(args),
         Command::Health(args) => health_cmd::run(args),
-        Command::Weights(WeightsCommand::Import { from, out }) => {
+        Command::Weights(WeightsCommand::Import {
+            from,
+            out,
+            trained_on,
+        }) => {
             let device = select_device()?;
-            let model = load_weights(&from, &device)?;
-            save_weights(&model, &out)?;
+            let model = WeightsSource::from_path(Some(&from)).load(&device)?;
+            let record = combined_records(&trained_on)?;
+            save_weights(&model, record.as_ref(), &out)?;
             eprintln!("wrote {}", out.display());
+            Ok(())
+        }
+        Command::Weights(WeightsCommand::Show { weights }) => {
+            let source = WeightsSource::from_path(Some(Path::new(&weights)));
+            match source.trained_on()? {
+                Some(record) => println!(
+                    "{}",
+                    serde_json::to_string_pretty(&record).expect("a record serialises")
+                ),
+                None => {
+                    eprintln!("{source}: no training record (its heads are trusted everywhere)")
+                }
+            }
             Ok(())
         }
         Command::Weights(WeightsCommand::Export { from, out }) => {
@@ -212,6 +247,32 @@ pub fn run(cli: Cli) -> Result<(), CliError> {
             Ok(())
         }
     }
+}
+
+/// The union of the records `paths` name: a record's JSON, or weights (`default`, a file) whose
+/// own record is taken.
+fn combined_records(paths: &[PathBuf]) -> Result<Option<TrainedOn>, CliError> {
+    let mut combined: Option<TrainedOn> = None;
+    for path in paths {
+        let is_json = path.extension().is_some_and(|e| e == "json");
+        let record = if is_json {
+            let text = std::fs::read_to_string(path).map_err(|e| CliError::io(path, e))?;
+            TrainedOn::from_json(&text)
+                .map_err(|e| CliError::Input(format!("{}: {e}", path.display())))?
+        } else {
+            let source = WeightsSource::from_path(Some(path));
+            source.trained_on()?.ok_or_else(|| {
+                CliError::Input(format!(
+                    "--trained-on {source}: these weights record nothing to inherit; give their training record (JSON)"
+                ))
+            })?
+        };
+        combined = Some(match combined {
+            Some(before) => before.then(&record),
+            None => record,
+        });
+    }
+    Ok(combined)
 }
 
 /// Decodes an image file with the default limits.

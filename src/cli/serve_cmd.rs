@@ -119,7 +119,9 @@ fn model_loader(settings: &Settings) -> Result<ModelLoader, CliError> {
     Ok(Box::new(move || {
         let device = select_device().map_err(|e| e.to_string())?;
         let model = weights.load(&device).map_err(|e| e.to_string())?;
+        let trained_on = weights.trained_on().map_err(|e| e.to_string())?;
         Matcher::new(model, device, convention)
+            .with_trained_on(trained_on)
             .with_precision(precision)
             .map_err(|e| e.to_string())
     }))

@@ -180,6 +180,7 @@ pub fn match_pair(
             reversed: candidates_of(proposal.reversed),
             timings: proposal.timings,
             timed_out: false,
+            heads: proposal.heads,
         },
     )
     .poses;

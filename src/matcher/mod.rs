@@ -33,7 +33,10 @@ use rayon::prelude::*;
 use crate::geometry::{Pose, TemplateFrame, TemplateOrigin};
 use crate::imaging::GrayImage32;
 use crate::imaging::{InputConvention, RgbImage32, resize_rgb, to_network_input};
-use crate::model::{InferenceNetwork, PoseHeads, Precision, PrecisionError, TEMPLATE_GRID, Tdcm};
+use crate::model::{
+    GridShape, InferenceNetwork, PoseHeads, Precision, PrecisionError, TEMPLATE_GRID, Tdcm,
+    TrainedOn,
+};
 pub use error::MatchError;
 pub use limits::{
     MAX_TEMPLATE_SIDE, MIN_IMAGE_SIDE, MIN_TEMPLATE_SIDE, TEMPLATE_LIMITS, search_limits,
@@ -45,7 +48,7 @@ use peaks::{MapPlanes, find_peaks, peak_at};
 use plan::{MAX_NETWORK_PIXELS, MIN_INPUT_SIDE, ScalePass, Tile};
 use selection::select;
 pub use template_mask::{MaskError, TemplateMask};
-use verification::{Verifier, verify_candidates, verify_candidates_until};
+use verification::{Heads, Verifier, verify_candidates, verify_candidates_until};
 
 /// A template after encoding: what the service caches per template ID.
 #[derive(Debug, Clone)]
@@ -151,6 +154,9 @@ pub struct Proposal {
     pub timings: MatchTimings,
     /// Network pieces were left out because the job's time limit had come.
     pub timed_out: bool,
+    /// Whether the candidates' angle, scales and centres can be believed: the weights were
+    /// trained throughout on parts of this template's shape ([`Matcher::heads_for`]).
+    pub heads: Heads,
 }
 
 /// The network and how to feed it. Not thread-safe by design: one owner (a CLI, the service's
@@ -167,6 +173,9 @@ pub struct Matcher {
     /// Objects' size on the network grid relative to the template grid (see
     /// [`plan::scale_passes`]); [`plan::DEFAULT_GRID_SCALE`] everywhere but in measurements.
     grid_scale: f32,
+    /// What the weights were trained on, where their file records it: where a template's parts
+    /// fall outside, the verification does not trust the heads ([`Matcher::heads_for`]).
+    trained_on: Option<TrainedOn>,
 }
 
 /// A network-input piece: one tile of one pass of one job, searched for one contrast.
@@ -192,6 +201,41 @@ impl Matcher {
             convention,
             max_whole_pixels: None,
             grid_scale: plan::DEFAULT_GRID_SCALE,
+            trained_on: None,
+        }
+    }
+
+    /// The weights' training record ([`crate::model::WeightsSource::trained_on`]); without one
+    /// the heads are trusted everywhere.
+    pub fn with_trained_on(mut self, trained_on: Option<TrainedOn>) -> Self {
+        self.trained_on = trained_on;
+        self
+    }
+
+    /// Whether the heads can be believed for `job`: its parts, shown on the grid as the scale
+    /// plan shows them (each pass of the caller's scale range on its own), lie inside the shapes
+    /// the weights were trained on throughout.
+    pub fn heads_for(&self, job: &MatchJob) -> Heads {
+        let Some(record) = &self.trained_on else {
+            return Heads::Trusted;
+        };
+        let (lo, hi) = job
+            .options
+            .scale_range
+            .map_or((1.0, 1.0), |r| (r.min, r.max));
+        let outside = plan::split_scale_range(lo, hi).into_iter().any(|pass| {
+            let shape = GridShape::of_template(job.template.width, job.template.height, pass);
+            let shown = GridShape {
+                smallest: shape.smallest * self.grid_scale,
+                largest: shape.largest * self.grid_scale,
+                ..shape
+            };
+            record.outside(&shown).is_some()
+        });
+        if outside {
+            Heads::Untrusted
+        } else {
+            Heads::Trusted
         }
     }
 
@@ -372,7 +416,10 @@ impl Matcher {
             ) {
                 Ok(job_pieces) => {
                     pieces.extend(job_pieces);
-                    results.push(Ok(Proposal::default()));
+                    results.push(Ok(Proposal {
+                        heads: self.heads_for(job),
+                        ..Proposal::default()
+                    }));
                 }
                 Err(e) => results.push(Err(e)),
             }
@@ -504,6 +551,7 @@ pub fn answer(job: &MatchJob, proposal: Proposal) -> MatchOutcome {
                 &image,
                 candidates,
                 job.options,
+                proposal.heads,
                 job.answer_by,
             );
             timings.refine_ms += verified.confirm_ms;

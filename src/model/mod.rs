@@ -19,9 +19,10 @@ pub use device::{DeviceError, available_backends, is_host_cpu, select_device};
 pub use inference::InferenceNetwork;
 pub use network::{
     Backbone, BackboneConfig, BackboneTrace, ConvNextBlock, DEFAULT_WEIGHTS, DEFAULT_WEIGHTS_NAME,
-    GlobalResponseNorm, HEAD_SCALE_MAX, HEAD_SCALE_MIN, Head, Heads, LoadError, MatchMaps,
-    PYTORCH_KEY_MAP, SearchBranch, SearchTrace, TEMPLATE_GRID, Tdcm, TdcmConfig, TemplateEncoder,
-    Upsampler, WeightsFormat, WeightsSource, depthwise_correlation, export_pytorch_safetensors,
-    load_weights, load_weights_from_bytes, save_weights,
+    GlobalResponseNorm, GridEnvelope, GridShape, HEAD_SCALE_MAX, HEAD_SCALE_MIN, Head, Heads,
+    LoadError, MatchMaps, Outside, PYTORCH_KEY_MAP, SearchBranch, SearchTrace, TEMPLATE_GRID, Tdcm,
+    TdcmConfig, TemplateEncoder, TrainedOn, TrainedOnError, Upsampler, WeightsFormat,
+    WeightsSource, depthwise_correlation, export_pytorch_safetensors, load_weights,
+    load_weights_from_bytes, save_weights,
 };
 pub use precision::{Precision, PrecisionError};

@@ -33,7 +33,10 @@ use serde::{Deserialize, Serialize};
 use crate::evaluation::{Summary, evaluate_pairs};
 use crate::imaging::{InputConvention, RgbImage32, to_network_input};
 use crate::matcher::Matcher;
-use crate::model::{TEMPLATE_GRID, Tdcm, TdcmConfig, WeightsSource, load_weights, save_weights};
+use crate::model::{
+    GridEnvelope, TEMPLATE_GRID, Tdcm, TdcmConfig, TrainedOn, WeightsSource, load_weights,
+    save_weights,
+};
 use crate::synth::{
     DEFAULT_MIN_STRUCTURE, Level, PairSpec, PhotoSet, SynthError, SyntheticPair, make_pair,
 };
@@ -125,6 +128,47 @@ struct Progress {
     batch: usize,
     search_side: u32,
     learning_rate: f64,
+    /// What the `--init` weights had been trained on (their record), which the weights this
+    /// run writes have seen too.
+    #[serde(default)]
+    inherited: Option<TrainedOn>,
+}
+
+impl TrainOptions {
+    /// What the weights have seen after `step` steps of this run: its own pairs (square
+    /// templates of the grid's size at the level's scales, one part per window) and whatever
+    /// the weights it started from had seen.
+    fn trained_on(&self, step: u64, inherited: Option<&TrainedOn>) -> TrainedOn {
+        let (lo, hi) = self.level.scale_range();
+        let level = GridEnvelope {
+            grid_scales: [lo, hi],
+            aspect_max: hi / lo,
+        };
+        let this_run = TrainedOn::run(
+            level,
+            level,
+            [TEMPLATE_GRID as u32; 2],
+            1,
+            self.search_side,
+            step * self.batch as u64,
+            format!(
+                "posematch train: {}, {} of {} steps of {} pairs, search {} px, {}",
+                self.level.name(),
+                step,
+                self.steps,
+                self.batch,
+                self.search_side,
+                match &self.init {
+                    Some(init) => format!("from {init}"),
+                    None => "from random initialisation".into(),
+                }
+            ),
+        );
+        match inherited {
+            Some(before) => before.then(&this_run),
+            None => this_run,
+        }
+    }
 }
 
 fn checkpoint_paths(out: &Path) -> (PathBuf, PathBuf) {
@@ -228,7 +272,7 @@ pub fn train(
 
     // Model, optimizer and first step: fresh, fine-tuned from --init, or resumed.
     let mut optimizer = AdamConfig::new().init();
-    let (mut model, first_step): (Tdcm, u64) = if options.resume {
+    let (mut model, first_step, inherited): (Tdcm, u64, Option<TrainedOn>) = if options.resume {
         let text = std::fs::read_to_string(&progress_path).map_err(|e| TrainError::Checkpoint {
             path: progress_path.clone(),
             message: format!("cannot resume: {e}"),
@@ -251,11 +295,11 @@ pub fn train(
                 path: optim_path.clone(),
                 message: e.to_string(),
             })?;
-        (model, progress.step)
+        (model, progress.step, progress.inherited)
     } else if let Some(init) = &options.init {
-        (init.load(&training_device)?, 0)
+        (init.load(&training_device)?, 0, init.trained_on()?)
     } else {
-        (TdcmConfig::new().init(&training_device), 0)
+        (TdcmConfig::new().init(&training_device), 0, None)
     };
 
     let training_photos = load_photo_folders(&options.images, options.search_side)?;
@@ -361,7 +405,7 @@ pub fn train(
         }
         let done = step + 1 == options.steps;
         if done || last_checkpoint.elapsed() >= options.checkpoint_every {
-            save_checkpoint(&model, &optimizer, options, step + 1)?;
+            save_checkpoint(&model, &optimizer, options, step + 1, inherited.as_ref())?;
             last_checkpoint = Instant::now();
             on_event(TrainEvent::Checkpoint {
                 step: step + 1,
@@ -434,6 +478,7 @@ fn save_checkpoint(
     optimizer: &burn::optim::ModuleOptimizer,
     options: &TrainOptions,
     step: u64,
+    inherited: Option<&TrainedOn>,
 ) -> Result<(), TrainError> {
     let (optim_path, progress_path) = checkpoint_paths(&options.out);
     let failed = |path: &Path, message: String| TrainError::Checkpoint {
@@ -446,7 +491,11 @@ fn save_checkpoint(
         PathBuf::from(name)
     };
     let weights_tmp = temporary(&options.out);
-    save_weights(&model.valid(), &weights_tmp)?;
+    save_weights(
+        &model.valid(),
+        Some(&options.trained_on(step, inherited)),
+        &weights_tmp,
+    )?;
     let optim_tmp = temporary(&optim_path);
     optimizer
         .save(&optim_tmp)
@@ -459,6 +508,7 @@ fn save_checkpoint(
         batch: options.batch,
         search_side: options.search_side,
         learning_rate: options.learning_rate,
+        inherited: inherited.cloned(),
     };
     let progress_tmp = temporary(&progress_path);
     std::fs::write(

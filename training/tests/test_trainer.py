@@ -2,6 +2,7 @@
 PIL's antialiased resize, labels against the formula, a short CPU run whose loss falls, and
 export -> reload. Run: `python3 -m pytest training/tests -q` (needs torch, numpy, pillow)."""
 
+import json
 import math
 import sys
 from pathlib import Path
@@ -219,6 +220,25 @@ def test_a_short_cpu_run_lowers_the_loss(bank, tmp_path):
     assert "resumed at step 30 (120 pairs seen)" in log and "step 40/40" in log
     # Every save is also kept under its step: the run's end here.
     assert (snapshots / "weights-step40.pth").read_bytes() == (out / "weights.pth").read_bytes()
+    # Beside the weights, what they were trained on, counted to the last save.
+    record = json.loads((out / "trained_on.json").read_text())
+    assert record["pairs"] == 40 * 4 and record["search_sides"] == [64]
+
+
+def test_the_training_record_says_what_every_pair_and_any_pair_could_be():
+    common = ["--corpus", "c", "--out", "o"]
+    plain = T.trained_on(T.parse_args(common), 1000)
+    assert plain["throughout"] == {"grid_scales": [0.8, 1.5], "aspect_max": 1.5 / 0.8}
+    assert plain["seen"] == plain["throughout"]
+    assert plain["parts_per_window_max"] == 1 and plain["pairs"] == 1000
+    wide = T.trained_on(T.parse_args(common + [
+        "--level", "S1.5,S2.5", "--elongated-share", "0.5", "--aspect-max", "3.5",
+        "--crowd-share", "0.3", "--crowd-max", "5", "--init-weights", "w.pth"]), 10)
+    # Every pair: the range both levels share; some pairs: S2.5's independent axes (aspect 5).
+    assert wide["throughout"]["grid_scales"] == [0.8, 1.5]
+    assert wide["seen"] == {"grid_scales": [0.5, 2.5], "aspect_max": 5.0}
+    assert wide["parts_per_window_max"] == 6
+    assert "from w.pth" in wide["runs"][0] and "50 % elongated" in wide["runs"][0]
 
 
 def test_export_round_trip(tmp_path):

@@ -4,6 +4,7 @@
 
 mod backbone;
 mod tdcm;
+mod trained_on;
 mod weights;
 
 pub use backbone::{Backbone, BackboneConfig, BackboneTrace, ConvNextBlock, GlobalResponseNorm};
@@ -13,6 +14,7 @@ pub use tdcm::{
     HEAD_SCALE_MAX, HEAD_SCALE_MIN, Head, Heads, MatchMaps, SearchBranch, SearchTrace,
     TEMPLATE_GRID, Tdcm, TdcmConfig, TemplateEncoder, Upsampler, depthwise_correlation,
 };
+pub use trained_on::{GridEnvelope, GridShape, Outside, TrainedOn, TrainedOnError};
 pub use weights::{
     DEFAULT_WEIGHTS, DEFAULT_WEIGHTS_NAME, LoadError, PYTORCH_KEY_MAP, WeightsFormat,
     WeightsSource, export_pytorch_safetensors, load_weights, load_weights_from_bytes, save_weights,

@@ -31,6 +31,7 @@ use burn::store::{
 };
 
 use super::tdcm::{Tdcm, TdcmConfig};
+use super::trained_on::{METADATA_KEY, TrainedOn};
 
 /// Regex rewrites from checkpoint names to ours, applied in order (see the module docs).
 pub const PYTORCH_KEY_MAP: &[(&str, &str)] = &[
@@ -62,6 +63,11 @@ pub enum LoadError {
     Mismatch {
         source_name: String,
         tensor: String,
+        problem: String,
+    },
+    #[error("weights {source_name}: its training record ({METADATA_KEY}) is unreadable: {problem}")]
+    TrainedOn {
+        source_name: String,
         problem: String,
     },
     #[error(
@@ -173,6 +179,43 @@ impl WeightsSource {
             Self::File(path) => load_weights(path, device),
         }
     }
+
+    /// What these weights were trained on, where the file records it (our own format since
+    /// issue 39); `None` for the official formats and older files.
+    pub fn trained_on(&self) -> Result<Option<TrainedOn>, LoadError> {
+        match self {
+            Self::Embedded => trained_on_in(
+                burn::store::burn_pack::Reader::from_bytes(
+                    burn::store::burn_pack::Bytes::from_bytes_vec(DEFAULT_WEIGHTS.to_vec()),
+                ),
+                DEFAULT_WEIGHTS_NAME,
+            ),
+            Self::File(path) => match WeightsFormat::of_file(path)? {
+                WeightsFormat::Burnpack => trained_on_in(
+                    burn::store::burn_pack::Reader::from_file_exact(path),
+                    &path.display().to_string(),
+                ),
+                WeightsFormat::Pytorch | WeightsFormat::PytorchSafetensors => Ok(None),
+            },
+        }
+    }
+}
+
+/// The record in a burnpack's metadata, if it has one.
+fn trained_on_in(
+    reader: Result<burn::store::burn_pack::Reader, burn::store::burn_pack::Error>,
+    source_name: &str,
+) -> Result<Option<TrainedOn>, LoadError> {
+    let problem = |problem: String| LoadError::TrainedOn {
+        source_name: source_name.to_owned(),
+        problem,
+    };
+    let reader = reader.map_err(|e| problem(e.to_string()))?;
+    reader
+        .metadata()
+        .get(METADATA_KEY)
+        .map(|json| TrainedOn::from_json(json).map_err(|e| problem(e.to_string())))
+        .transpose()
 }
 
 impl std::fmt::Display for WeightsSource {
@@ -248,13 +291,21 @@ pub fn load_weights_from_bytes(
     Ok(model)
 }
 
-/// Saves in our own format (burnpack). Overwrites `path`.
-pub fn save_weights(model: &Tdcm, path: &Path) -> Result<(), LoadError> {
+/// Saves in our own format (burnpack), with what the weights were trained on where that is
+/// known ([`TrainedOn`], in the file's metadata). Overwrites `path`.
+pub fn save_weights(
+    model: &Tdcm,
+    trained_on: Option<&TrainedOn>,
+    path: &Path,
+) -> Result<(), LoadError> {
     let mut store = BurnpackStore::from_file(path)
         .auto_extension(false)
         .overwrite(true)
         .metadata("format", "posematch-tdcm")
         .metadata("license_note", "see models/README.md for provenance");
+    if let Some(record) = trained_on {
+        store = store.metadata(METADATA_KEY, record.to_json());
+    }
     model
         .save_into(&mut store)
         .map_err(|e| LoadError::Unreadable {
