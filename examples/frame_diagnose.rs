@@ -28,6 +28,10 @@ fn main() {
     let part = procedural_part(28, 52);
     let options: ValidOptions = MatchOptions {
         max_instances: 200,
+        max_candidates: std::env::var("DIAG_CANDIDATES")
+            .ok()
+            .and_then(|v| v.parse().ok())
+            .unwrap_or(0),
         ..MatchOptions::default()
     }
     .validate()
@@ -69,7 +73,24 @@ fn main() {
                 .filter(|c| (c.x - t.x).hypot(c.y - t.y) <= radius)
                 .max_by(|a, b| a.network_score.total_cmp(&b.network_score));
             let kind = match near {
-                None => "no candidate near".to_string(),
+                None => {
+                    let nearest = candidates
+                        .iter()
+                        .map(|c| (c.x - t.x).hypot(c.y - t.y))
+                        .fold(f32::INFINITY, f32::min);
+                    format!(
+                        "no candidate near (nearest {} px) ",
+                        if nearest < 12.0 {
+                            "8-12"
+                        } else if nearest < 16.0 {
+                            "12-16"
+                        } else if nearest < 24.0 {
+                            "16-24"
+                        } else {
+                            ">= 24"
+                        }
+                    )
+                }
                 Some(c) => {
                     let angle_error = angle_distance_deg(c.angle_deg, t.angle_deg);
                     near_errors.push((angle_error, c.scale_x, c.scale_y));

@@ -101,7 +101,7 @@ pub struct VerificationArgs {
     #[arg(long, default_value_t = crate::matcher::options::DEFAULT_CANDIDATE_THRESHOLD)]
     pub candidate_threshold: f32,
     /// Most candidates verified per search (the best of every tile's peaks); 0 = automatic (3
-    /// per --max-instances, at least 100).
+    /// per --max-instances, 6 where the weights' heads are not trusted, at least 100).
     #[arg(long, default_value_t = 0)]
     pub max_candidates: usize,
     /// Do not search the image classically (at the template's expected scale) when none of

@@ -97,7 +97,13 @@ pub fn match_pair(
     let start = Instant::now();
     let encoded = matcher.encode_masked_template(&pair.template, mask)?;
     // One network pass serves all three paths: enough peaks for either.
-    let budget = options.candidate_budget();
+    let heads = matcher.heads_for(&MatchJob {
+        template: &encoded,
+        image: &pair.search,
+        options,
+        answer_by: None,
+    });
+    let budget = options.candidate_budget_for(heads);
     let propose_options = ValidOptions::derived(MatchOptions {
         candidate_threshold: options.candidate_threshold.min(network_min_score),
         max_candidates: budget.max(4 * options.max_instances + 16),

@@ -459,7 +459,7 @@ impl Matcher {
                 let per_piece = maps.len() / batch.len();
                 for (piece, maps) in batch.iter().zip(maps.chunks_exact(per_piece)) {
                     if let Ok(proposal) = &mut results[piece.job] {
-                        let poses = piece_poses(piece, maps, &jobs[piece.job]);
+                        let poses = piece_poses(piece, maps, &jobs[piece.job], proposal.heads);
                         match piece.contrast {
                             Contrast::Same => proposal.candidates.extend(poses),
                             Contrast::Reversed => proposal.reversed.extend(poses),
@@ -478,7 +478,7 @@ impl Matcher {
                 // The budget holds for the whole search, not per tile: a 2048 frame is 9
                 // tiles, and 9 budgets of low peaks cost the screen more than they find
                 // (docs/verification.md).
-                candidates.truncate(peak_threshold_and_limit(job.options).1);
+                candidates.truncate(peak_limit(job.options, proposal.heads));
             }
             proposal.timings = MatchTimings {
                 prepare_ms: prepare_ms / count,
@@ -514,7 +514,7 @@ impl Matcher {
         // above half the peak): the pose heads are needed only there.
         let least = batch
             .iter()
-            .map(|p| peak_threshold_and_limit(jobs[p.job].options).0)
+            .map(|p| peak_threshold(jobs[p.job].options))
             .fold(f32::INFINITY, f32::min);
         self.network.search_maps(
             planar,
@@ -657,17 +657,24 @@ pub fn with_classical_fallback(
     (poses, start.elapsed().as_secs_f64() * 1e3)
 }
 
-/// The least heatmap value of a peak the peak reading considers, and how many peaks it keeps. With
-/// verification every peak above the low candidate threshold is worth a look (up to the
-/// budget); without it the heatmap value is the answer's score.
-fn peak_threshold_and_limit(options: &ValidOptions) -> (f32, usize) {
+/// The least heatmap value of a peak the peak reading considers. With verification every peak
+/// above the low candidate threshold is worth a look (up to [`peak_limit`]); without it the
+/// heatmap value is the answer's score.
+fn peak_threshold(options: &ValidOptions) -> f32 {
     if options.verify {
-        (options.candidate_threshold, options.candidate_budget())
+        options.candidate_threshold
     } else {
-        (
-            options.effective_min_score(),
-            4 * options.max_instances + 16,
-        )
+        options.effective_min_score()
+    }
+}
+
+/// How many peaks the peak reading keeps: the candidate budget with verification (more where
+/// the heads are not trusted), a few per instance without.
+fn peak_limit(options: &ValidOptions, heads: Heads) -> usize {
+    if options.verify {
+        options.candidate_budget_for(heads)
+    } else {
+        4 * options.max_instances + 16
     }
 }
 
@@ -785,7 +792,7 @@ fn prepare(
 }
 
 /// Peaks of one piece that it owns, as poses in the original image.
-fn piece_poses(piece: &Piece, maps: &[f32], job: &MatchJob) -> Vec<Pose> {
+fn piece_poses(piece: &Piece, maps: &[f32], job: &MatchJob, heads: Heads) -> Vec<Pose> {
     // The network output is 4*floor(side/4).
     let w = piece.width / 4 * 4;
     let h = piece.height / 4 * 4;
@@ -799,7 +806,7 @@ fn piece_poses(piece: &Piece, maps: &[f32], job: &MatchJob) -> Vec<Pose> {
         scale_x: &maps[3 * n..4 * n],
         scale_y: &maps[4 * n..5 * n],
     };
-    let (threshold, limit) = peak_threshold_and_limit(job.options);
+    let (threshold, limit) = (peak_threshold(job.options), peak_limit(job.options, heads));
     let pass = piece.pass;
     let tile = piece.tile;
     let grid = TEMPLATE_GRID as f32;

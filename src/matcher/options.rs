@@ -3,6 +3,7 @@
 //! request): [`MatchOptions::validate`] turns them into [`ValidOptions`], the only form the
 //! engine and the matcher accept, so nothing below the boundary checks them again.
 
+use super::verification::Heads;
 use std::ops::Deref;
 
 /// Restricts answers to angles in `[start, start + extent]` (degrees, counter-clockwise).
@@ -272,6 +273,15 @@ impl Default for MatchOptions {
     }
 }
 
+/// Automatic candidates per wanted instance where the heads are not trusted
+/// ([`MatchOptions::candidate_budget_for`]). The 2048 frame of `cargo bench --bench frames`
+/// (144 28x52 parts, `max_instances` 200, default weights, 4 frames): 3 per instance left 24
+/// parts without a candidate within 16 px (recall 0.958), 4.5 left 2 (0.997), 6 none (1.000),
+/// the screen 250 → 350 → 450 ms of a frame. Single 28x52 pairs (tuning photos, 200) gain
+/// nothing from 200 candidates instead of 100 (92.5 % both); with one instance the budget stays
+/// [`MIN_CANDIDATE_BUDGET`].
+pub const UNTRUSTED_CANDIDATES_PER_INSTANCE: usize = 6;
+
 impl MatchOptions {
     /// Whether partly covered parts are searched for ([`MatchOptions::covered_parts`]).
     pub fn expects_covered_parts(&self) -> bool {
@@ -279,11 +289,23 @@ impl MatchOptions {
             .unwrap_or(self.effective_min_score() < COVERED_PARTS_BELOW)
     }
 
-    /// Most candidates verified per search: `max_candidates`, or by default three per
-    /// wanted instance and at least [`MIN_CANDIDATE_BUDGET`].
+    /// Most candidates verified per search where the network's heads are trusted:
+    /// `max_candidates`, or by default three per wanted instance and at least
+    /// [`MIN_CANDIDATE_BUDGET`].
     pub fn candidate_budget(&self) -> usize {
+        self.candidate_budget_for(Heads::Trusted)
+    }
+
+    /// [`MatchOptions::candidate_budget`] for heads trusted or not: where they are not, the
+    /// heatmap's ranking is no better than its angle and scales, and the automatic budget is
+    /// [`UNTRUSTED_CANDIDATES_PER_INSTANCE`] per wanted instance.
+    pub fn candidate_budget_for(&self, heads: Heads) -> usize {
+        let per_instance = match heads {
+            Heads::Trusted => 3,
+            Heads::Untrusted => UNTRUSTED_CANDIDATES_PER_INSTANCE,
+        };
         match self.max_candidates {
-            0 => (3 * self.max_instances).max(MIN_CANDIDATE_BUDGET),
+            0 => (per_instance * self.max_instances).max(MIN_CANDIDATE_BUDGET),
             n => n,
         }
     }
@@ -420,6 +442,29 @@ impl Deref for ValidOptions {
 #[cfg(test)]
 mod tests {
     use super::*;
+
+    #[test]
+    fn untrusted_heads_get_twice_the_automatic_candidates_above_the_floor() {
+        let frame = MatchOptions {
+            max_instances: 200,
+            ..MatchOptions::default()
+        };
+        assert_eq!(frame.candidate_budget(), 600);
+        assert_eq!(frame.candidate_budget_for(Heads::Untrusted), 1200);
+        let single = MatchOptions {
+            max_instances: 1,
+            ..MatchOptions::default()
+        };
+        assert_eq!(
+            single.candidate_budget_for(Heads::Untrusted),
+            MIN_CANDIDATE_BUDGET
+        );
+        let chosen = MatchOptions {
+            max_candidates: 50,
+            ..frame
+        };
+        assert_eq!(chosen.candidate_budget_for(Heads::Untrusted), 50);
+    }
 
     #[test]
     fn defaults_are_valid_and_each_absurd_field_is_refused_by_name() {

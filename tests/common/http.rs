@@ -38,7 +38,12 @@ impl HttpClient {
     pub fn new(addr: std::net::SocketAddr) -> Self {
         Self {
             base: format!("http://{addr}"),
-            client: Client::builder(TokioExecutor::new()).build_http(),
+            // A connection per request: a server that refuses a request without reading its
+            // body closes the connection after answering, and a pooled one would then fail the
+            // next request with a broken pipe.
+            client: Client::builder(TokioExecutor::new())
+                .pool_max_idle_per_host(0)
+                .build_http(),
             token: None,
         }
     }
@@ -64,6 +69,21 @@ impl HttpClient {
         body: Vec<u8>,
         headers: &[(&str, &str)],
     ) -> Answer {
+        self.try_send(method, path, body, headers)
+            .await
+            .expect("the HTTP port answers")
+    }
+
+    /// [`HttpClient::send`], or the client's error: a server that answers before reading a large
+    /// body (a refusal) may close the connection while the body is still being written, and
+    /// the client then sees a broken pipe instead of the answer.
+    pub async fn try_send(
+        &self,
+        method: &str,
+        path: &str,
+        body: Vec<u8>,
+        headers: &[(&str, &str)],
+    ) -> Result<Answer, hyper_util::client::legacy::Error> {
         let mut request = hyper::Request::builder()
             .method(method)
             .uri(format!("{}{path}", self.base));
@@ -82,18 +102,17 @@ impl HttpClient {
         let response = self
             .client
             .request(request.body(Full::new(Bytes::from(body))).unwrap())
-            .await
-            .expect("the HTTP port answers");
+            .await?;
         let status = response.status().as_u16();
         let headers = response.headers().clone();
         let bytes = response.into_body().collect().await.unwrap().to_bytes();
         let body = serde_json::from_slice(&bytes)
             .unwrap_or_else(|_| Value::String(String::from_utf8_lossy(&bytes).into_owned()));
-        Answer {
+        Ok(Answer {
             status,
             headers,
             body,
-        }
+        })
     }
 }
 
