@@ -7,7 +7,10 @@
 //! - `frame2048`: 2048x2048, 144 parts of 28x52 at any angle, scale 1 (the paper's industrial
 //!   case), `max_instances` 200, otherwise CLI defaults;
 //! - `pair224`: 224x224 with one 36x36 part;
-//! - `tiny12`: 224x224 with one 12x12 part.
+//! - `tiny12`: 224x224 with one 12x12 part;
+//! - `frame2048photo`, when `POSEMATCH_BENCH_PHOTOS=DIR` names a folder of photos: `frame2048`'s
+//!   parts laid on a photo (one per frame in turn, stretched to 2048x2048) instead of the plain
+//!   procedural background. Give held-out photos (`/usr/share/backgrounds/mate`).
 //!
 //! A detection counts when its centre is within 30 % of the part's short side of a true centre
 //! and its angle within 15° (one detection per truth). `cargo bench --bench frames`;
@@ -30,9 +33,10 @@ static ALLOCATOR: mimalloc::MiMalloc = mimalloc::MiMalloc;
 
 use posematch::geometry::{Pose, angle_distance_deg};
 use posematch::imaging::{GrayImage32, InputConvention, RgbImage32};
+use posematch::imaging::{ImageLimits, decode_image_file, resize_rgb};
 use posematch::matcher::{MatchOptions, Matcher, classical};
 use posematch::model::{Precision, WeightsSource, load_weights, select_device};
-use posematch::synth::{parts_frame, procedural_part};
+use posematch::synth::{parts_frame, parts_frame_on, procedural_part};
 
 struct Case {
     name: &'static str,
@@ -40,16 +44,62 @@ struct Case {
     side: u32,
     grid: u32,
     max_instances: usize,
+    /// Photos to lay the parts on, one per frame in turn (empty: the procedural background).
+    backgrounds: Vec<RgbImage32>,
+}
+
+impl Case {
+    /// The frame of `seed` and its truth.
+    fn scene(&self, seed: u64) -> (RgbImage32, Vec<Pose>) {
+        if self.backgrounds.is_empty() {
+            parts_frame(&self.part, self.side, self.grid, self.grid, seed)
+        } else {
+            let photo = &self.backgrounds[seed as usize % self.backgrounds.len()];
+            let background = resize_rgb(photo, self.side, self.side);
+            parts_frame_on(background, &self.part, self.grid, self.grid, seed)
+        }
+    }
+}
+
+/// The photos of `POSEMATCH_BENCH_PHOTOS` (a folder and its subfolders; files in path order,
+/// what does not decode skipped), for the `frame2048photo` case. Held-out photos only
+/// (mate-backgrounds): never tune on them.
+fn photo_backgrounds() -> Vec<RgbImage32> {
+    let Ok(dir) = std::env::var("POSEMATCH_BENCH_PHOTOS") else {
+        return Vec::new();
+    };
+    fn files_under(dir: &std::path::Path, out: &mut Vec<PathBuf>) {
+        let Ok(entries) = std::fs::read_dir(dir) else {
+            return;
+        };
+        for path in entries.filter_map(|e| e.ok().map(|e| e.path())) {
+            if path.is_dir() {
+                files_under(&path, out);
+            } else {
+                out.push(path);
+            }
+        }
+    }
+    let mut paths = Vec::new();
+    files_under(std::path::Path::new(&dir), &mut paths);
+    assert!(!paths.is_empty(), "POSEMATCH_BENCH_PHOTOS={dir}: no files");
+    paths.sort();
+    paths
+        .iter()
+        .filter_map(|p| decode_image_file(p, ImageLimits::default()).ok())
+        .collect()
 }
 
 fn cases() -> Vec<Case> {
-    vec![
+    let photos = photo_backgrounds();
+    let mut cases = vec![
         Case {
             name: "frame2048",
             part: procedural_part(28, 52),
             side: 2048,
             grid: 12,
             max_instances: 200,
+            backgrounds: Vec::new(),
         },
         Case {
             name: "pair224",
@@ -57,6 +107,7 @@ fn cases() -> Vec<Case> {
             side: 224,
             grid: 1,
             max_instances: 1,
+            backgrounds: Vec::new(),
         },
         Case {
             name: "tiny12",
@@ -64,8 +115,20 @@ fn cases() -> Vec<Case> {
             side: 224,
             grid: 1,
             max_instances: 1,
+            backgrounds: Vec::new(),
         },
-    ]
+    ];
+    if !photos.is_empty() {
+        cases.push(Case {
+            name: "frame2048photo",
+            part: procedural_part(28, 52),
+            side: 2048,
+            grid: 12,
+            max_instances: 200,
+            backgrounds: photos,
+        });
+    }
+    cases
 }
 
 /// (true positives, detections, truths), one detection per truth, best score first.
@@ -189,7 +252,7 @@ fn main() {
             .unwrap();
             // Frames are made one at a time (untimed), as a camera delivers them: the memory
             // figure is then that of a service holding one frame.
-            let scene = |seed: u64| parts_frame(&case.part, case.side, case.grid, case.grid, seed);
+            let scene = |seed: u64| case.scene(seed);
             // One untimed search first: allocations and caches warm, as in a running service.
             matcher.match_one(&template, &scene(0).0, &options).unwrap();
             for &threads in &thread_counts {

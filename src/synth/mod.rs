@@ -451,8 +451,35 @@ pub fn parts_frame(
             pixels.extend_from_slice(&[v * 0.95, v, v * 1.05]);
         }
     }
-    let mut frame = RgbImage32::new(side, side, pixels);
-    let (cell_w, cell_h) = (side as f32 / cols as f32, side as f32 / rows as f32);
+    let frame = RgbImage32::new(side, side, pixels);
+    paste_parts(frame, part, rows, cols, &mut rng)
+}
+
+/// [`parts_frame`] on `background` (any photo; its size is the frame's): the same part laid out
+/// the same way over real clutter, where the procedural background is plain.
+pub fn parts_frame_on(
+    background: RgbImage32,
+    part: &RgbImage32,
+    rows: u32,
+    cols: u32,
+    seed: u64,
+) -> (RgbImage32, Vec<Pose>) {
+    let mut rng = rng_for(seed ^ 0x0FAB_F4A3, 1);
+    paste_parts(background, part, rows, cols, &mut rng)
+}
+
+/// Pastes `rows x cols` copies of `part` into `frame`, one per grid cell (see [`parts_frame`]).
+fn paste_parts(
+    mut frame: RgbImage32,
+    part: &RgbImage32,
+    rows: u32,
+    cols: u32,
+    rng: &mut impl Rng,
+) -> (RgbImage32, Vec<Pose>) {
+    let (cell_w, cell_h) = (
+        frame.width as f32 / cols as f32,
+        frame.height as f32 / rows as f32,
+    );
     let reach = (part.width as f32).hypot(part.height as f32) / 2.0 + 2.0;
     let mut truth = Vec::with_capacity((rows * cols) as usize);
     for r in 0..rows {
@@ -642,5 +669,42 @@ mod tests {
         }
         let (again, _) = parts_frame(&part, 512, 3, 3, 7);
         assert_eq!(again.pixels, frame.pixels, "deterministic from the seed");
+    }
+
+    #[test]
+    fn parts_laid_on_a_photo_leave_it_unchanged_between_them() {
+        let part = procedural_part(28, 52);
+        let background = RgbImage32::new(
+            300,
+            240,
+            (0..300 * 240)
+                .flat_map(|i| {
+                    let v = 0.3 + 0.2 * ((i % 300) as f32 * 0.05).sin();
+                    [v, v, v]
+                })
+                .collect(),
+        );
+        let (frame, truth) = parts_frame_on(background.clone(), &part, 2, 3, 4);
+        assert_eq!((frame.width, frame.height, truth.len()), (300, 240, 6));
+        for pose in &truth {
+            let (s, c) = pose.angle_deg.to_radians().sin_cos();
+            // The brushed body at the centre, the large hole above it.
+            assert!(frame.sample(pose.x, pose.y)[0] > 0.5, "{pose:?}");
+            let (hx, hy) = (pose.x - 52.0 * 0.27 * s, pose.y - 52.0 * 0.27 * c);
+            assert!(frame.sample(hx, hy)[0] < 0.2, "{pose:?}");
+        }
+        // Pixels beyond every part's reach keep the photo's value.
+        let reach = 30.0;
+        for y in (0..240).step_by(7) {
+            for x in (0..300).step_by(7) {
+                if truth
+                    .iter()
+                    .all(|t| (t.x - x as f32).hypot(t.y - y as f32) > reach)
+                {
+                    let i = (y * 300 + x) * 3;
+                    assert_eq!(frame.pixels[i], background.pixels[i], "({x}, {y})");
+                }
+            }
+        }
     }
 }
