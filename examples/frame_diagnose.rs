@@ -4,20 +4,25 @@
 //! whether the screen kept it, and whether the verified answer found it. Procedural frames
 //! only (no photos).
 //!
-//! `cargo run --release --example frame_diagnose -- [--seeds 0,1] [--weights W]`
+//! `cargo run --release --example frame_diagnose -- [--seeds 0,1] [--photos DIR] [--weights W]`
 
 use clap::Parser;
 use posematch::cli::{ModelArgs, load_model};
 use posematch::geometry::{Pose, angle_distance_deg};
 use posematch::imaging::GrayImage32;
+use posematch::imaging::{ImageLimits, decode_image_file, resize_rgb};
 use posematch::matcher::verification::{SCREEN_MIN, Verifier};
 use posematch::matcher::{MatchJob, MatchOptions, ValidOptions};
-use posematch::synth::{parts_frame, procedural_part};
+use posematch::synth::{parts_frame, parts_frame_on, procedural_part};
 
 #[derive(Parser)]
 struct Args {
     #[arg(long, value_delimiter = ',', default_value = "0,1")]
     seeds: Vec<u64>,
+    /// Lay the parts on these photos (files in name order, one per seed in turn; held-out
+    /// photos only) instead of the procedural background.
+    #[arg(long)]
+    photos: Option<std::path::PathBuf>,
     #[command(flatten)]
     model: ModelArgs,
 }
@@ -25,6 +30,18 @@ struct Args {
 fn main() {
     let args = Args::parse();
     let matcher = load_model(&args.model).unwrap();
+    let photos: Option<Vec<posematch::imaging::RgbImage32>> = args.photos.as_ref().map(|dir| {
+        let mut paths: Vec<_> = std::fs::read_dir(dir)
+            .unwrap()
+            .filter_map(|e| e.ok().map(|e| e.path()))
+            .filter(|p| p.is_file())
+            .collect();
+        paths.sort();
+        paths
+            .iter()
+            .filter_map(|p| decode_image_file(p, ImageLimits::default()).ok())
+            .collect()
+    });
     let part = procedural_part(28, 52);
     let options: ValidOptions = MatchOptions {
         max_instances: 200,
@@ -41,7 +58,13 @@ fn main() {
     let mut tally = std::collections::BTreeMap::<String, usize>::new();
     let mut near_errors: Vec<(f32, f32, f32)> = Vec::new();
     for &seed in &args.seeds {
-        let (frame, truth) = parts_frame(&part, 2048, 12, 12, seed);
+        let (frame, truth) = match &photos {
+            Some(photos) => {
+                let photo = &photos[seed as usize % photos.len()];
+                parts_frame_on(resize_rgb(photo, 2048, 2048), &part, 12, 12, seed)
+            }
+            None => parts_frame(&part, 2048, 12, 12, seed),
+        };
         let job = MatchJob {
             template: &encoded,
             image: &frame,
@@ -56,7 +79,7 @@ fn main() {
         let candidates: Vec<Pose> = proposal
             .candidates
             .iter()
-            .take(options.candidate_budget())
+            .take(options.candidate_budget_for(matcher.heads_for(&job)))
             .copied()
             .collect();
         let answer = matcher.match_one(&encoded, &frame, &options).unwrap();
