@@ -12,7 +12,9 @@
 //!    side, then ten Gauss–Newton steps of all five parameters on that level blurred by one
 //!    pixel. The alignment matters: a weakly trained network's peaks are often several pixels
 //!    off the object, where a search at a fixed centre scores the object no better than a
-//!    decoy. A fraction of a millisecond per candidate.
+//!    decoy. A fraction of a millisecond per candidate. Where the weights were not trained on
+//!    the template's shape ([`Heads::Untrusted`]) the network's scales and centre are not
+//!    believed: the screen starts at the expected scale, from a ring of centres around the peak.
 //! 2. **Confirm** ([`Verifier::confirm`]), only the candidates that survive the screen: the
 //!    refinement's fine search and five-parameter alignment at full resolution, then the
 //!    similarity (ZNCC over the template's support) at the refined pose.
