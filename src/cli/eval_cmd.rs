@@ -175,7 +175,7 @@ pub fn run(args: EvalArgs) -> Result<(), CliError> {
             make_multi_instance(
                 &photos,
                 args.level,
-                tw,
+                (tw, th),
                 args.min_structure,
                 args.seed,
                 index,

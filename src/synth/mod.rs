@@ -306,14 +306,14 @@ pub fn make_pair(
     })
 }
 
-/// Multi-instance image `index`: a 320x320 background cut from one photo, a template cut from
-/// another place, and 2–8 copies of it (rotated, independently scaled within the level, masked)
+/// Multi-instance image `index`: a 320x320 background cut from one photo, a template (any
+/// width and height) cut from another place, and 2–8 copies of it (rotated, independently scaled within the level, masked)
 /// in distinct cells of a 4x4 grid, so that no two overlap. The template needs at least
 /// `min_structure` (see [`PairSpec::min_structure`]).
 pub fn make_multi_instance(
     photos: &PhotoSet,
     level: Level,
-    template_side: u32,
+    (template_width, template_height): (u32, u32),
     min_structure: f32,
     seed: u64,
     index: u64,
@@ -329,8 +329,8 @@ pub fn make_multi_instance(
         let template_photo = &photos.photos[template_index];
         if background_photo.width() < SIDE
             || background_photo.height() < SIDE
-            || template_photo.width() < template_side
-            || template_photo.height() < template_side
+            || template_photo.width() < template_width
+            || template_photo.height() < template_height
         {
             continue;
         }
@@ -338,10 +338,10 @@ pub fn make_multi_instance(
         let by = rng.random_range(0..=background_photo.height() - SIDE);
         let mut search =
             to_f32(&image::imageops::crop_imm(background_photo, bx, by, SIDE, SIDE).to_image());
-        let tx = rng.random_range(0..=template_photo.width() - template_side);
-        let ty = rng.random_range(0..=template_photo.height() - template_side);
+        let tx = rng.random_range(0..=template_photo.width() - template_width);
+        let ty = rng.random_range(0..=template_photo.height() - template_height);
         let template = to_f32(
-            &image::imageops::crop_imm(template_photo, tx, ty, template_side, template_side)
+            &image::imageops::crop_imm(template_photo, tx, ty, template_width, template_height)
                 .to_image(),
         );
         if template_structure(&template) < min_structure {
@@ -361,9 +361,9 @@ pub fn make_multi_instance(
             let mut sx = rng.random_range(lo..=hi);
             let mut sy = rng.random_range(lo..=hi);
             // Keep each rotated copy inside its cell (shrink if the level allows more).
-            let t = template_side as f32;
+            let (tw, th) = (template_width as f32, template_height as f32);
             let extent = |sx: f32, sy: f32| {
-                (sx * t * co.abs() + sy * t * s.abs()).max(sx * t * s.abs() + sy * t * co.abs())
+                (sx * tw * co.abs() + sy * th * s.abs()).max(sx * tw * s.abs() + sy * th * co.abs())
             };
             let fit = (cell - 4.0) / extent(sx, sy);
             if fit < 1.0 {
@@ -592,16 +592,26 @@ mod tests {
     fn multi_instance_truth_is_exact_and_disjoint() {
         let dir = photo_dir();
         let photos = PhotoSet::load(dir.path(), 320).unwrap();
-        let pair = make_multi_instance(&photos, Level::S1_5, 36, 1.0, 3, 0).unwrap();
-        assert!((2..=8).contains(&pair.truth.len()));
-        for t in &pair.truth {
-            assert!(truth_residual(&pair, t) < 0.03);
-        }
-        for (i, a) in pair.truth.iter().enumerate() {
-            for b in &pair.truth[i + 1..] {
-                let iou =
-                    crate::geometry::rotated_iou(&a.corners(36.0, 36.0), &b.corners(36.0, 36.0));
-                assert_eq!(iou, 0.0);
+        // Square and elongated templates alike.
+        for (w, h) in [(36u32, 36u32), (28, 52)] {
+            let pair = make_multi_instance(&photos, Level::S1_5, (w, h), 1.0, 3, 0).unwrap();
+            assert_eq!((pair.template.width, pair.template.height), (w, h));
+            assert!((2..=8).contains(&pair.truth.len()));
+            for t in &pair.truth {
+                assert!(truth_residual(&pair, t) < 0.03);
+                for (x, y) in t.corners(w as f32, h as f32) {
+                    assert!(
+                        (0.0..320.0).contains(&x) && (0.0..320.0).contains(&y),
+                        "{t:?}"
+                    );
+                }
+            }
+            let (w, h) = (w as f32, h as f32);
+            for (i, a) in pair.truth.iter().enumerate() {
+                for b in &pair.truth[i + 1..] {
+                    let iou = crate::geometry::rotated_iou(&a.corners(w, h), &b.corners(w, h));
+                    assert_eq!(iou, 0.0);
+                }
             }
         }
     }
