@@ -4,7 +4,8 @@
 //! whether the screen kept it, and whether the verified answer found it. Procedural frames
 //! only (no photos).
 //!
-//! `cargo run --release --example frame_diagnose -- [--seeds 0,1] [--photos DIR] [--weights W]`
+//! `cargo run --release --example frame_diagnose -- [--seeds 0,1] [--photos DIR] [--max-candidates N]
+//! [--verbose] [--weights W]`
 
 use clap::Parser;
 use posematch::cli::{ModelArgs, load_model};
@@ -23,6 +24,12 @@ struct Args {
     /// photos only) instead of the procedural background.
     #[arg(long)]
     photos: Option<std::path::PathBuf>,
+    /// Candidates verified per frame (0: the matcher's automatic budget).
+    #[arg(long, default_value_t = 0)]
+    max_candidates: usize,
+    /// Print every lost part that had a candidate near it: where the screen took it.
+    #[arg(long)]
+    verbose: bool,
     #[command(flatten)]
     model: ModelArgs,
 }
@@ -45,10 +52,7 @@ fn main() {
     let part = procedural_part(28, 52);
     let options: ValidOptions = MatchOptions {
         max_instances: 200,
-        max_candidates: std::env::var("DIAG_CANDIDATES")
-            .ok()
-            .and_then(|v| v.parse().ok())
-            .unwrap_or(0),
+        max_candidates: args.max_candidates,
         ..MatchOptions::default()
     }
     .validate()
@@ -119,7 +123,7 @@ fn main() {
                     near_errors.push((angle_error, c.scale_x, c.scale_y));
                     let screened = verifier.screen(c);
                     let screen_right = hit(&screened.pose, t);
-                    if !found && std::env::var("DIAG_VERBOSE").is_ok() {
+                    if !found && args.verbose {
                         let oracle = verifier.screen(t);
                         println!(
                             "lost: candidate {:.1} px off, angle error {:.0}°, scales {:.2}/{:.2}; screened {:.1} px off, angle error {:.0}°, scales {:.2}/{:.2}, score {:.2}; at the truth the screen scores {:.2}",

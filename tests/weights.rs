@@ -99,19 +99,18 @@ fn import_keeps_the_training_record_and_show_prints_it() {
             "pairs": 1000, "runs": ["a test run"]}"#,
     )
     .unwrap();
+    // `weights import --from default --out OUT --trained-on R…`: exit code and stderr.
+    let import = |out: &std::path::Path, records: &[&str]| {
+        let mut args = vec!["weights", "import", "--from", "default", "--out"];
+        args.push(out.to_str().unwrap());
+        for record in records {
+            args.extend(["--trained-on", record]);
+        }
+        let (code, _, stderr) = posematch(&args);
+        (code, stderr)
+    };
     let out = tmp.path().join("tuned.bpk");
-    let (code, _, stderr) = posematch(&[
-        "weights",
-        "import",
-        "--from",
-        "default",
-        "--out",
-        out.to_str().unwrap(),
-        "--trained-on",
-        "default",
-        "--trained-on",
-        run.to_str().unwrap(),
-    ]);
+    let (code, stderr) = import(&out, &["default", run.to_str().unwrap()]);
     assert_eq!(code, 0, "{stderr}");
     let default = WeightsSource::Embedded.trained_on().unwrap().unwrap();
     let written = WeightsSource::File(out.clone())
@@ -128,14 +127,7 @@ fn import_keeps_the_training_record_and_show_prints_it() {
     assert_eq!(shown, written);
     // Without --trained-on: no record, and show says the heads are trusted everywhere.
     let bare = tmp.path().join("bare.bpk");
-    let (code, _, stderr) = posematch(&[
-        "weights",
-        "import",
-        "--from",
-        "default",
-        "--out",
-        bare.to_str().unwrap(),
-    ]);
+    let (code, stderr) = import(&bare, &[]);
     assert_eq!(code, 0, "{stderr}");
     assert_eq!(
         WeightsSource::File(bare.clone()).trained_on().unwrap(),
@@ -148,16 +140,7 @@ fn import_keeps_the_training_record_and_show_prints_it() {
     let junk = tmp.path().join("junk.json");
     std::fs::write(&junk, r#"{"grid_scales": [1, 2]}"#).unwrap();
     for record in [junk.to_str().unwrap(), bare.to_str().unwrap()] {
-        let (code, _, stderr) = posematch(&[
-            "weights",
-            "import",
-            "--from",
-            "default",
-            "--out",
-            out.to_str().unwrap(),
-            "--trained-on",
-            record,
-        ]);
+        let (code, stderr) = import(&out, &[record]);
         assert_eq!(code, 1, "{stderr}");
         assert!(
             stderr.contains("--trained-on") || stderr.contains("not a training record"),
