@@ -5,7 +5,7 @@
 //! the object's peak among all peaks. Mirrors `verify_candidates` (best two screens confirmed).
 //! Use it on tuning photos, never on evaluation photos:
 //!
-//! `cargo run --release --example diagnose -- --images DIR --count 500 [--weights W]`
+//! `cargo run --release --example diagnose -- --images DIR --count 500 [--condition C] [--weights W]`
 
 use clap::Parser;
 use posematch::cli::{ModelArgs, load_model};
@@ -14,6 +14,7 @@ use posematch::geometry::Pose;
 use posematch::imaging::GrayImage32;
 use posematch::matcher::verification::Verifier;
 use posematch::matcher::{MatchJob, MatchOptions, ValidOptions};
+use posematch::synth::conditions::{self, Condition};
 use posematch::synth::{Level, PairSpec, PhotoSet, make_pair};
 
 #[derive(Parser)]
@@ -24,6 +25,9 @@ struct Args {
     count: u64,
     #[arg(long, default_value_t = 0)]
     seed: u64,
+    /// Camera conditions applied to each pair, in order, as `posematch eval --condition`.
+    #[arg(long, default_value = "clean", value_delimiter = ',', value_parser = str::parse::<Condition>)]
+    condition: Vec<Condition>,
     #[command(flatten)]
     model: ModelArgs,
 }
@@ -48,6 +52,7 @@ fn main() {
     let mut tally = std::collections::BTreeMap::<&str, usize>::new();
     for index in 0..args.count {
         let pair = make_pair(&photos, &spec, args.seed, index).unwrap();
+        let (pair, _) = conditions::apply_all(pair, &args.condition, args.seed, index);
         let truth = pair.truth[0];
         let encoded = matcher.encode_template(&pair.template).unwrap();
         let wide_options: ValidOptions = MatchOptions {

@@ -534,3 +534,24 @@ fn a_part_under_each_camera_condition_is_found_at_the_default_min_score() {
         assert!(part.score >= 0.9, "{name}: {part:?}");
     }
 }
+
+/// Light that changes by about half across the part (a lamp on one side): the whole
+/// template's correlation counts it as mismatch, the readings that let the light vary across
+/// the part (the cells' own gains, the shading planes) do not, and the part still scores above
+/// the default `min_score`.
+#[test]
+fn a_part_under_light_falling_across_it_scores_above_the_default_min_score() {
+    let image = texture_in_band(240, 240, 7, 0.2..1.2);
+    let (_, _, truth) = scene();
+    let template = cut_template(&image, &truth);
+    // Gain about 1.45 on one side of the part, 0.75 on the other, along a slanted direction.
+    let (dx, dy) = (0.8f32, 0.6f32);
+    let lit = GrayImage32::from_fn(240, 240, |x, y| {
+        let along = ((x as f32 - truth.x) * dx + (y as f32 - truth.y) * dy) / 36.0;
+        image.values[y * 240 + x] * (1.1 - 0.5 * along)
+    });
+    let verifier = Verifier::new(&template, &lit, None, |_| true);
+    let similarity = verifier.similarity(&truth);
+    assert!(verifier.score(similarity) < 0.9, "{similarity}");
+    assert!(verifier.score_at(&truth, similarity) >= 0.9);
+}

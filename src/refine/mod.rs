@@ -32,10 +32,12 @@ pub(crate) mod align;
 mod correlate;
 mod coverage;
 mod rank;
+mod shading;
 mod sharpness;
 
 pub(crate) use coverage::Coverage;
 pub(crate) use rank::RankPoints;
+pub(crate) use shading::ShadingPoints;
 pub(crate) use sharpness::Sharpness;
 
 use crate::imaging::GrayImage32;
