@@ -8,6 +8,8 @@
 //!   case), `max_instances` 200, otherwise CLI defaults;
 //! - `pair224`: 224x224 with one 36x36 part;
 //! - `tiny12`: 224x224 with one 12x12 part;
+//! - `frame2048board`: `frame2048`'s parts laid on a procedural circuit board
+//!   (`posematch::synth::circuit_board`: traces, pads, chips, silkscreen), man-made clutter;
 //! - `frame2048photo`, when `POSEMATCH_BENCH_PHOTOS=DIR` names a folder of photos: `frame2048`'s
 //!   parts laid on a photo (one per frame in turn, stretched to 2048x2048) instead of the plain
 //!   procedural background. Give held-out photos (`/usr/share/backgrounds/mate`).
@@ -36,7 +38,7 @@ use posematch::imaging::{GrayImage32, InputConvention, RgbImage32};
 use posematch::imaging::{ImageLimits, decode_image_file, resize_rgb};
 use posematch::matcher::{MatchOptions, Matcher, classical};
 use posematch::model::{Precision, WeightsSource, load_weights, select_device};
-use posematch::synth::{parts_frame, parts_frame_on, procedural_part};
+use posematch::synth::{circuit_board, parts_frame, parts_frame_on, procedural_part};
 
 struct Case {
     name: &'static str,
@@ -44,19 +46,36 @@ struct Case {
     side: u32,
     grid: u32,
     max_instances: usize,
-    /// Photos to lay the parts on, one per frame in turn (empty: the procedural background).
-    backgrounds: Vec<RgbImage32>,
+    /// What the parts are laid on.
+    background: Background,
+}
+
+enum Background {
+    /// The plain procedural background of `parts_frame`.
+    Plain,
+    /// A procedural circuit board, one per frame (`circuit_board`).
+    Board,
+    /// Photos, one per frame in turn, stretched to the frame.
+    Photos(Vec<RgbImage32>),
 }
 
 impl Case {
     /// The frame of `seed` and its truth.
     fn scene(&self, seed: u64) -> (RgbImage32, Vec<Pose>) {
-        if self.backgrounds.is_empty() {
-            parts_frame(&self.part, self.side, self.grid, self.grid, seed)
-        } else {
-            let photo = &self.backgrounds[seed as usize % self.backgrounds.len()];
-            let background = resize_rgb(photo, self.side, self.side);
-            parts_frame_on(background, &self.part, self.grid, self.grid, seed)
+        match &self.background {
+            Background::Plain => parts_frame(&self.part, self.side, self.grid, self.grid, seed),
+            Background::Board => parts_frame_on(
+                circuit_board(self.side, seed),
+                &self.part,
+                self.grid,
+                self.grid,
+                seed,
+            ),
+            Background::Photos(photos) => {
+                let photo = &photos[seed as usize % photos.len()];
+                let background = resize_rgb(photo, self.side, self.side);
+                parts_frame_on(background, &self.part, self.grid, self.grid, seed)
+            }
         }
     }
 }
@@ -99,7 +118,7 @@ fn cases() -> Vec<Case> {
             side: 2048,
             grid: 12,
             max_instances: 200,
-            backgrounds: Vec::new(),
+            background: Background::Plain,
         },
         Case {
             name: "pair224",
@@ -107,7 +126,7 @@ fn cases() -> Vec<Case> {
             side: 224,
             grid: 1,
             max_instances: 1,
-            backgrounds: Vec::new(),
+            background: Background::Plain,
         },
         Case {
             name: "tiny12",
@@ -115,9 +134,17 @@ fn cases() -> Vec<Case> {
             side: 224,
             grid: 1,
             max_instances: 1,
-            backgrounds: Vec::new(),
+            background: Background::Plain,
         },
     ];
+    cases.push(Case {
+        name: "frame2048board",
+        part: procedural_part(28, 52),
+        side: 2048,
+        grid: 12,
+        max_instances: 200,
+        background: Background::Board,
+    });
     if !photos.is_empty() {
         cases.push(Case {
             name: "frame2048photo",
@@ -125,7 +152,7 @@ fn cases() -> Vec<Case> {
             side: 2048,
             grid: 12,
             max_instances: 200,
-            backgrounds: photos,
+            background: Background::Photos(photos),
         });
     }
     cases

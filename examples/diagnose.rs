@@ -2,7 +2,8 @@
 //! wrong, where the true object was lost — no candidate at all above the candidate threshold, no
 //! candidate near it, screened below the survivors, confirmed lower than a decoy, or a decoy
 //! that genuinely matches at least as well as the truth — with the rank and heatmap value of
-//! the object's peak among all peaks. Mirrors `verify_candidates` (best two screens confirmed).
+//! the object's peak among all peaks. Mirrors `verify_candidates` (the best 20 screens ranked
+//! by their score, the best two confirmed).
 //! Use it on tuning photos, never on evaluation photos:
 //!
 //! `cargo run --release --example diagnose -- --images DIR --count 500 [--condition C] [--weights W]`
@@ -93,6 +94,19 @@ fn main() {
                 .map(|(i, c)| (i, *c, verifier.screen(c)))
                 .collect();
         screened.sort_by(|a, b| b.2.score.total_cmp(&a.2.score));
+        // The best 20 screens by their score, as `verify_candidates` ranks them.
+        let ranked = screened.len().min(20);
+        let mut head: Vec<(f32, _)> = screened
+            .drain(..ranked)
+            .map(|s| {
+                (
+                    verifier.score_at(&s.2.pose, verifier.similarity(&s.2.pose)),
+                    s,
+                )
+            })
+            .collect();
+        head.sort_by(|a, b| b.0.total_cmp(&a.0));
+        screened.splice(0..0, head.into_iter().map(|(_, s)| s));
         if screened.is_empty() {
             *tally.entry("no candidates at all").or_default() += 1;
             let near = proposal

@@ -4,8 +4,8 @@
 //! whether the screen kept it, and whether the verified answer found it. Procedural frames
 //! only (no photos).
 //!
-//! `cargo run --release --example frame_diagnose -- [--seeds 0,1] [--photos DIR] [--max-candidates N]
-//! [--verbose] [--weights W]`
+//! `cargo run --release --example frame_diagnose -- [--seeds 0,1] [--photos DIR | --board]
+//! [--max-candidates N] [--verbose] [--save FRAME.png] [--weights W]`
 
 use clap::Parser;
 use posematch::cli::{ModelArgs, load_model};
@@ -14,7 +14,7 @@ use posematch::imaging::GrayImage32;
 use posematch::imaging::{ImageLimits, decode_image_file, resize_rgb};
 use posematch::matcher::verification::{SCREEN_MIN, Verifier};
 use posematch::matcher::{MatchJob, MatchOptions, ValidOptions};
-use posematch::synth::{parts_frame, parts_frame_on, procedural_part};
+use posematch::synth::{circuit_board, parts_frame, parts_frame_on, procedural_part};
 
 #[derive(Parser)]
 struct Args {
@@ -24,6 +24,12 @@ struct Args {
     /// photos only) instead of the procedural background.
     #[arg(long)]
     photos: Option<std::path::PathBuf>,
+    /// Lay the parts on a procedural circuit board (`synth::circuit_board`), one per seed.
+    #[arg(long, conflicts_with = "photos")]
+    board: bool,
+    /// Write the first seed's frame here (PNG), to look at.
+    #[arg(long)]
+    save: Option<std::path::PathBuf>,
     /// Candidates verified per frame (0: the matcher's automatic budget).
     #[arg(long, default_value_t = 0)]
     max_candidates: usize,
@@ -67,8 +73,20 @@ fn main() {
                 let photo = &photos[seed as usize % photos.len()];
                 parts_frame_on(resize_rgb(photo, 2048, 2048), &part, 12, 12, seed)
             }
+            None if args.board => parts_frame_on(circuit_board(2048, seed), &part, 12, 12, seed),
             None => parts_frame(&part, 2048, 12, 12, seed),
         };
+        if let Some(path) = args.save.as_ref().filter(|_| seed == args.seeds[0]) {
+            let bytes: Vec<u8> = frame
+                .pixels
+                .iter()
+                .map(|v| (v.clamp(0.0, 1.0) * 255.0).round() as u8)
+                .collect();
+            image::RgbImage::from_raw(frame.width, frame.height, bytes)
+                .unwrap()
+                .save(path)
+                .unwrap();
+        }
         let job = MatchJob {
             template: &encoded,
             image: &frame,

@@ -468,6 +468,112 @@ pub fn parts_frame_on(
     paste_parts(background, part, rows, cols, &mut rng)
 }
 
+/// A `side x side` circuit board drawn procedurally: green solder mask, copper traces (straight
+/// and at 45°), tinned pads and vias, black chip bodies with their pins, white silkscreen
+/// outlines. Why: the industrial frame's other background: where the procedural frame is plain
+/// and the photos are natural, a board is man-made clutter of straight edges, corners and
+/// near-identical repeated shapes, what a part on a line is seen against. Needs no photos, and
+/// is deterministic from `seed`.
+pub fn circuit_board(side: u32, seed: u64) -> RgbImage32 {
+    const MASK: [f32; 3] = [0.08, 0.33, 0.16];
+    const COPPER: [f32; 3] = [0.2, 0.48, 0.2];
+    const TIN: [f32; 3] = [0.78, 0.77, 0.72];
+    const CHIP: [f32; 3] = [0.07, 0.07, 0.08];
+    const SILK: [f32; 3] = [0.92, 0.92, 0.88];
+    let mut rng = rng_for(seed ^ 0xB0A2_D5EE, 2);
+    let n = side as usize;
+    let mut pixels = vec![0.0f32; n * n * 3];
+    for y in 0..n {
+        for x in 0..n {
+            let grain = 0.015 * ((x as f32 * 0.21).sin() + (y as f32 * 0.17).cos());
+            for (k, c) in MASK.iter().enumerate() {
+                pixels[(y * n + x) * 3 + k] = c + grain;
+            }
+        }
+    }
+    let fill = |pixels: &mut [f32], x0: i64, y0: i64, x1: i64, y1: i64, colour: [f32; 3]| {
+        for y in y0.max(0)..y1.min(n as i64) {
+            for x in x0.max(0)..x1.min(n as i64) {
+                let at = (y as usize * n + x as usize) * 3;
+                pixels[at..at + 3].copy_from_slice(&colour);
+            }
+        }
+    };
+    let area = (side as f32 / 1024.0).powi(2);
+    // Traces: chains of straight and diagonal runs, each ending on a via.
+    for _ in 0..(220.0 * area) as usize {
+        let width = rng.random_range(3..10i64);
+        let (mut x, mut y) = (
+            rng.random_range(0..side as i64),
+            rng.random_range(0..side as i64),
+        );
+        for _ in 0..rng.random_range(2..6) {
+            let (dx, dy) =
+                [(1, 0), (0, 1), (1, 1), (1, -1), (-1, 0), (0, -1)][rng.random_range(0..6usize)];
+            for _ in 0..rng.random_range(20..260) {
+                fill(&mut pixels, x, y, x + width, y + width, COPPER);
+                x += dx;
+                y += dy;
+            }
+        }
+        let r = width + 4;
+        fill(&mut pixels, x - r, y - r, x + r + width, y + r + width, TIN);
+        fill(
+            &mut pixels,
+            x - 2,
+            y - 2,
+            x + width + 2,
+            y + width + 2,
+            CHIP,
+        );
+    }
+    // Components: a chip body with pins on two or four sides and its silkscreen outline, or a
+    // two-pad part (resistor, capacitor).
+    for _ in 0..(140.0 * area) as usize {
+        let (x, y) = (
+            rng.random_range(0..side as i64),
+            rng.random_range(0..side as i64),
+        );
+        if rng.random_bool(0.4) {
+            let (w, h) = (rng.random_range(40..140i64), rng.random_range(40..140i64));
+            fill(&mut pixels, x - 6, y - 6, x + w + 6, y + h + 6, SILK);
+            fill(&mut pixels, x - 4, y - 4, x + w + 4, y + h + 4, MASK);
+            let four = rng.random_bool(0.5);
+            let mut pin = 6;
+            while pin + 4 < w {
+                fill(&mut pixels, x + pin, y - 12, x + pin + 4, y, TIN);
+                fill(&mut pixels, x + pin, y + h, x + pin + 4, y + h + 12, TIN);
+                pin += 10;
+            }
+            let mut pin = 6;
+            while four && pin + 4 < h {
+                fill(&mut pixels, x - 12, y + pin, x, y + pin + 4, TIN);
+                fill(&mut pixels, x + w, y + pin, x + w + 12, y + pin + 4, TIN);
+                pin += 10;
+            }
+            fill(&mut pixels, x, y, x + w, y + h, CHIP);
+        } else {
+            let (long, short) = (rng.random_range(16..40i64), rng.random_range(8..18i64));
+            let (w, h) = if rng.random_bool(0.5) {
+                (long, short)
+            } else {
+                (short, long)
+            };
+            fill(&mut pixels, x - 3, y - 3, x + w + 3, y + h + 3, SILK);
+            fill(&mut pixels, x - 1, y - 1, x + w + 1, y + h + 1, MASK);
+            let pad = (w.min(h) * 2 / 3).max(4);
+            if w > h {
+                fill(&mut pixels, x, y, x + pad, y + h, TIN);
+                fill(&mut pixels, x + w - pad, y, x + w, y + h, TIN);
+            } else {
+                fill(&mut pixels, x, y, x + w, y + pad, TIN);
+                fill(&mut pixels, x, y + h - pad, x + w, y + h, TIN);
+            }
+        }
+    }
+    RgbImage32::new(side, side, pixels)
+}
+
 /// Pastes `rows x cols` copies of `part` into `frame`, one per grid cell (see [`parts_frame`]).
 fn paste_parts(
     mut frame: RgbImage32,
@@ -505,6 +611,26 @@ fn paste_parts(
 #[cfg(test)]
 mod tests {
     use super::*;
+
+    #[test]
+    fn a_circuit_board_is_deterministic_and_holds_mask_copper_tin_and_chips() {
+        let board = circuit_board(512, 3);
+        assert_eq!(board.pixels, circuit_board(512, 3).pixels);
+        assert_ne!(board.pixels, circuit_board(512, 4).pixels);
+        let share = |colour: [f32; 3]| {
+            board
+                .pixels
+                .chunks_exact(3)
+                .filter(|p| p.iter().zip(colour).all(|(a, b)| (a - b).abs() < 0.04))
+                .count() as f32
+                / (512.0 * 512.0)
+        };
+        // Mostly solder mask, with every other kind of surface present.
+        assert!(share([0.08, 0.33, 0.16]) > 0.3);
+        for colour in [[0.2, 0.48, 0.2], [0.78, 0.77, 0.72], [0.07, 0.07, 0.08]] {
+            assert!(share(colour) > 0.005, "{colour:?}: {}", share(colour));
+        }
+    }
 
     /// A folder with two synthetic "photos" (smooth textures).
     fn photo_dir() -> tempfile::TempDir {
