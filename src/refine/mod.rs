@@ -516,6 +516,20 @@ pub fn refine_pose(template: &GrayImage32, image: &GrayImage32, initial: &Pose) 
     }
 }
 
+/// The pose that lays `template` over itself (an image of its size): the readings' tests.
+#[cfg(test)]
+pub(crate) fn at_centre(template: &GrayImage32) -> Pose {
+    Pose {
+        x: (template.width as f32 - 1.0) / 2.0,
+        y: (template.height as f32 - 1.0) / 2.0,
+        angle_deg: 0.0,
+        scale_x: 1.0,
+        scale_y: 1.0,
+        score: 0.0,
+        network_score: 0.0,
+    }
+}
+
 /// White noise in [0.2, 0.8], a hash of the position and the seed: the refinement's tests'
 /// texture, detailed at every pixel.
 #[cfg(test)]

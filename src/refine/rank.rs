@@ -85,19 +85,7 @@ fn unit_ranks(values: &[f32]) -> Vec<f32> {
 #[cfg(test)]
 mod tests {
     use super::*;
-    use crate::refine::textured;
-
-    fn at_centre(template: &GrayImage32) -> Pose {
-        Pose {
-            x: (template.width as f32 - 1.0) / 2.0,
-            y: (template.height as f32 - 1.0) / 2.0,
-            angle_deg: 0.0,
-            scale_x: 1.0,
-            scale_y: 1.0,
-            score: 0.0,
-            network_score: 0.0,
-        }
-    }
+    use crate::refine::{at_centre, textured};
 
     #[test]
     fn any_increasing_curve_of_the_grey_levels_keeps_the_rank_similarity_at_one() {

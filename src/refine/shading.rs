@@ -144,19 +144,7 @@ fn dot(a: &[f64], b: &[f64]) -> f64 {
 #[cfg(test)]
 mod tests {
     use super::*;
-    use crate::refine::textured;
-
-    fn at_centre(template: &GrayImage32) -> Pose {
-        Pose {
-            x: (template.width as f32 - 1.0) / 2.0,
-            y: (template.height as f32 - 1.0) / 2.0,
-            angle_deg: 0.0,
-            scale_x: 1.0,
-            scale_y: 1.0,
-            score: 0.0,
-            network_score: 0.0,
-        }
-    }
+    use crate::refine::{at_centre, textured};
 
     fn lit(template: &GrayImage32, light: impl Fn(f32, f32) -> f32) -> GrayImage32 {
         GrayImage32::from_fn(template.width, template.height, |x, y| {
