@@ -3,7 +3,7 @@
 //! candidate near it, screened below the survivors, confirmed lower than a decoy, or a decoy
 //! that genuinely matches at least as well as the truth — with the rank and heatmap value of
 //! the object's peak among all peaks. Mirrors `verify_candidates` (the best 20 screens ranked
-//! by their score, the best two confirmed).
+//! by their score, `RANKED_BEYOND_SURVIVORS`, the best two confirmed).
 //! Use it on tuning photos, never on evaluation photos:
 //!
 //! `cargo run --release --example diagnose -- --images DIR --count 500 [--condition C] [--weights W]`
@@ -13,7 +13,7 @@ use posematch::cli::{ModelArgs, load_model};
 use posematch::evaluation::pair_error;
 use posematch::geometry::Pose;
 use posematch::imaging::GrayImage32;
-use posematch::matcher::verification::Verifier;
+use posematch::matcher::verification::{RANKED_BEYOND_SURVIVORS, Verifier};
 use posematch::matcher::{MatchJob, MatchOptions, ValidOptions};
 use posematch::synth::conditions::{self, Condition};
 use posematch::synth::{Level, PairSpec, PhotoSet, make_pair};
@@ -94,8 +94,8 @@ fn main() {
                 .map(|(i, c)| (i, *c, verifier.screen(c)))
                 .collect();
         screened.sort_by(|a, b| b.2.score.total_cmp(&a.2.score));
-        // The best 20 screens by their score, as `verify_candidates` ranks them.
-        let ranked = screened.len().min(20);
+        // The best screens by their score, as `verify_candidates` ranks them (two survivors).
+        let ranked = screened.len().min(2 + RANKED_BEYOND_SURVIVORS);
         let mut head: Vec<(f32, _)> = screened
             .drain(..ranked)
             .map(|s| {

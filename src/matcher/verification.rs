@@ -637,7 +637,7 @@ impl<'a> Verifier<'a> {
 /// 38 / 98 ranked beyond the two survivors: clean 91.5 / 93.0 / 95.0 / 95.5 / 95.5 %,
 /// uneven-light 70.5 / 71.0 / 71.5 / 71.5 / 72.0 %, noise-15 68.0 / 69.0 / 69.0 / 69.5 / 69.5 %,
 /// defocus-2 76.5 / 79.0 / 80.5 / 80.0 / – %, at 0 / 1 / 2 / 4 / 12 ms more a pair (27–30 ms).
-const RANKED_BEYOND_SURVIVORS: usize = 18;
+pub const RANKED_BEYOND_SURVIVORS: usize = 18;
 
 /// Orders the best `count` screens (by the screen's sparse ZNCC, `screened` sorted so) by the
 /// score at their screened pose ([`Verifier::score_at`], at full resolution), ahead of the

@@ -84,6 +84,19 @@ fn grid_points(template: &GrayImage32, max_side: usize) -> (Vec<(f32, f32)>, Vec
     (offsets, values)
 }
 
+/// The image (bilinear) where `pose` maps each template offset: the samples a reading compares
+/// with its template points.
+fn samples_at<'a>(
+    image: &'a GrayImage32,
+    pose: &'a Pose,
+    offsets: &'a [(f32, f32)],
+) -> impl Iterator<Item = f32> + 'a {
+    offsets.iter().map(|&(u, v)| {
+        let (x, y) = pose.map_point(u, v);
+        image.sample(x, y)
+    })
+}
+
 /// `(offsets, values)` without the few points farthest from the template centre that would
 /// start a last, mostly empty lane of [`correlate::LANES`] (at most a quarter of a lane): the
 /// sampling costs the same per lane however many of its points are real, and the screen

@@ -33,14 +33,7 @@ impl RankPoints {
         if self.offsets.len() < 2 {
             return -1.0;
         }
-        let samples: Vec<f32> = self
-            .offsets
-            .iter()
-            .map(|&(u, v)| {
-                let (x, y) = pose.map_point(u, v);
-                image.sample(x, y)
-            })
-            .collect();
+        let samples: Vec<f32> = super::samples_at(image, pose, &self.offsets).collect();
         let (low, high) = samples
             .iter()
             .fold((f32::INFINITY, f32::NEG_INFINITY), |(l, h), &v| {

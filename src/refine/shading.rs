@@ -101,13 +101,8 @@ impl ShadingPoints {
         if !self.usable {
             return -1.0;
         }
-        let samples: Vec<f64> = self
-            .offsets
-            .iter()
-            .map(|&(u, v)| {
-                let (x, y) = pose.map_point(u, v);
-                image.sample(x, y) as f64
-            })
+        let samples: Vec<f64> = super::samples_at(image, pose, &self.offsets)
+            .map(f64::from)
             .collect();
         let energy = dot(&samples, &samples);
         let coefficients: Vec<f64> = self.basis.iter().map(|q| dot(&samples, q)).collect();
