@@ -277,10 +277,9 @@ pub struct Verifier<'a> {
     shading: ShadingPoints,
     /// [`chance_of_shading`] of the template (`None`: too smooth for the reading).
     shading_chance: Option<f32>,
-    /// The template compared with the image's noise taken out ([`Verifier::score_at`]).
-    denoised: NoisePoints,
-    /// The image's noise.
-    noise: NoiseLevel,
+    /// The template compared with the image's noise taken out ([`Verifier::score_at`]), and
+    /// that noise; `None` for a template too smooth for the reading ([`DENOISED_MAX_CHANCE`]).
+    denoised: Option<(NoisePoints, NoiseLevel)>,
     /// Scales an answer may have ([`Verifier::plausible`]).
     scale_bounds: (f32, f32),
     /// The caller's scale range, which a confirmed pose is held to ([`Verifier::confirm`]).
@@ -381,8 +380,8 @@ impl<'a> Verifier<'a> {
             rank_chance: chance_of_reading(template),
             shading: ShadingPoints::new(template),
             shading_chance: chance_of_shading(template),
-            denoised: NoisePoints::new(template),
-            noise: NoiseLevel::estimate(image),
+            denoised: (chance_similarity(template) <= DENOISED_MAX_CHANCE)
+                .then(|| (NoisePoints::new(template), NoiseLevel::estimate(image))),
             scale_bounds: (scales.0 / SCALE_SLACK, scales.1 * SCALE_SLACK),
             required_scales: scale_range,
             expected_scale,
@@ -462,8 +461,8 @@ impl<'a> Verifier<'a> {
         });
         let denoised = self
             .denoised
-            .read(self.image, pose, self.noise)
-            .filter(|_| self.chance <= DENOISED_MAX_CHANCE)
+            .as_ref()
+            .and_then(|(points, noise)| points.read(self.image, pose, *noise))
             .map_or(0.0, |reading| {
                 let chance =
                     (self.chance.powi(2) + CHANCE_LOG_HYPOTHESES * reading.noise_spread).sqrt();

@@ -121,6 +121,18 @@ fn in_whole_lanes((offsets, values): (Vec<(f32, f32)>, Vec<f32>)) -> (Vec<(f32, 
     )
 }
 
+/// `values` made zero-mean and unit-norm (all zero when they are all the same), and the norm
+/// they had after centring (`sqrt(n)` times their standard deviation).
+fn unit_weights(values: &[f32]) -> (Vec<f32>, f32) {
+    let mean = values.iter().sum::<f32>() / values.len().max(1) as f32;
+    let mut weights: Vec<f32> = values.iter().map(|v| v - mean).collect();
+    let norm = weights.iter().map(|w| w * w).sum::<f32>().sqrt();
+    if norm > 1e-6 {
+        weights.iter_mut().for_each(|w| *w /= norm);
+    }
+    (weights, norm)
+}
+
 /// Template points (offsets from the template centre) with zero-mean, unit-norm values.
 pub(crate) struct TemplatePoints {
     lanes: correlate::PointLanes,
@@ -138,12 +150,7 @@ impl TemplatePoints {
     }
 
     fn from_points((offsets, values): (Vec<(f32, f32)>, Vec<f32>)) -> Self {
-        let mean = values.iter().sum::<f32>() / values.len() as f32;
-        let mut weights: Vec<f32> = values.iter().map(|v| v - mean).collect();
-        let norm = weights.iter().map(|w| w * w).sum::<f32>().sqrt();
-        if norm > 1e-6 {
-            weights.iter_mut().for_each(|w| *w /= norm);
-        }
+        let (weights, _) = unit_weights(&values);
         Self {
             lanes: correlate::PointLanes::new(&offsets, &weights),
         }

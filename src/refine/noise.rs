@@ -85,12 +85,7 @@ pub(crate) struct NoisePoints {
 impl NoisePoints {
     pub(crate) fn new(template: &GrayImage32) -> Self {
         let (offsets, values) = super::grid_points(template, 48);
-        let mean = values.iter().sum::<f32>() / values.len().max(1) as f32;
-        let mut weights: Vec<f32> = values.iter().map(|v| v - mean).collect();
-        let norm = weights.iter().map(|w| w * w).sum::<f32>().sqrt();
-        if norm > 1e-6 {
-            weights.iter_mut().for_each(|w| *w /= norm);
-        }
+        let (weights, norm) = super::unit_weights(&values);
         Self {
             spread: norm / (offsets.len().max(1) as f32).sqrt(),
             offsets,
