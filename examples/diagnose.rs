@@ -2,7 +2,8 @@
 //! wrong, where the true object was lost — no candidate at all above the candidate threshold, no
 //! candidate near it, screened below the survivors, confirmed lower than a decoy, or a decoy
 //! that genuinely matches at least as well as the truth — with the rank and heatmap value of
-//! the object's peak among all peaks. Mirrors `verify_candidates` (the best 20 screens ranked
+//! the object's peak among all peaks; with `--readings`, what each reading made of the right
+//! answers that scored under 0.9. Mirrors `verify_candidates` (the best 20 screens ranked
 //! by their score, `RANKED_BEYOND_SURVIVORS`, the best two confirmed).
 //! Use it on tuning photos, never on evaluation photos:
 //!
@@ -29,8 +30,33 @@ struct Args {
     /// Camera conditions applied to each pair, in order, as `posematch eval --condition`.
     #[arg(long, default_value = "clean", value_delimiter = ',', value_parser = str::parse::<Condition>)]
     condition: Vec<Condition>,
+    /// Print every reading of the answers that are right but score under 0.9.
+    #[arg(long)]
+    readings: bool,
     #[command(flatten)]
     model: ModelArgs,
+}
+
+/// One line per reading of a right answer that scored under the default `min_score`.
+fn print_readings(index: u64, verifier: &Verifier, pose: &Pose, template: &GrayImage32) {
+    let chance = posematch::matcher::verification::chance_similarity(template);
+    println!(
+        "#{index:4} right, score {:.3}, template chance {chance:.3}, angle {:.0} s {:.2}/{:.2}",
+        verifier.score_at(pose, verifier.similarity(pose)),
+        pose.angle_deg,
+        pose.scale_x,
+        pose.scale_y,
+    );
+    for reading in verifier.readings_at(pose, verifier.similarity(pose)) {
+        println!(
+            "        {:50} similarity {:.3} chance {:.3} share {:.2} -> {:.3}",
+            format!("{:?}", reading.kind),
+            reading.similarity,
+            reading.chance,
+            reading.share,
+            reading.score()
+        );
+    }
 }
 
 fn main() {
@@ -130,8 +156,15 @@ fn main() {
             Some(s) if s.score > winner.score => s,
             _ => winner,
         };
-        if ok(&picked.pose) && picked.score >= 0.8 {
+        if ok(&picked.pose) && picked.score >= 0.9 {
             *tally.entry("right").or_default() += 1;
+            continue;
+        }
+        if ok(&picked.pose) {
+            *tally.entry("right pose, score < 0.9").or_default() += 1;
+            if args.readings {
+                print_readings(index, &verifier, &picked.pose, template);
+            }
             continue;
         }
         // Oracle: screen and confirm at the truth.
@@ -152,18 +185,12 @@ fn main() {
             .map(|(i, c)| (i, c.network_score))
             .next();
         let top_net = proposal.candidates.first().map(|c| c.network_score);
-        let kind = if ok(&picked.pose) {
-            "right pose, score < 0.8"
-        } else if oracle.score <= picked.score + 1e-3 {
-            "decoy matches at least as well as truth"
-        } else if near.is_empty() && rank_of_true_screen.is_none() {
-            "no candidate near truth"
-        } else if rank_of_true_screen.is_none() {
-            "candidate near, screen did not reach truth"
-        } else if rank_of_true_screen.unwrap() >= 2 {
-            "screen ranked truth below survivors"
-        } else {
-            "confirm lost truth"
+        let kind = match rank_of_true_screen {
+            _ if oracle.score <= picked.score + 1e-3 => "decoy matches at least as well as truth",
+            None if near.is_empty() => "no candidate near truth",
+            None => "candidate near, screen did not reach truth",
+            Some(rank) if rank >= 2 => "screen ranked truth below survivors",
+            Some(_) => "confirm lost truth",
         };
         *tally.entry(kind).or_default() += 1;
         println!(
@@ -181,6 +208,20 @@ fn main() {
             truth.scale_x,
             truth.scale_y,
         );
+        if let Some(rank) = rank_of_true_screen {
+            let (i, candidate, screen) = &screened[rank];
+            println!(
+                "      its screen:  candidate {i} at angle {:.0} s {:.2}/{:.2} -> screened angle {:.0} s {:.2}/{:.2} score {:.3} (truth angle {:.0})",
+                candidate.angle_deg,
+                candidate.scale_x,
+                candidate.scale_y,
+                screen.pose.angle_deg,
+                screen.pose.scale_x,
+                screen.pose.scale_y,
+                screen.score,
+                truth.angle_deg
+            );
+        }
     }
     println!("{tally:#?}");
 }

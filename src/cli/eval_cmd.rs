@@ -191,7 +191,7 @@ pub fn run(args: EvalArgs) -> Result<(), CliError> {
                 .expect("three quadrants of a template are enough pixels")
         });
         if let Some(saver) = saver.as_mut() {
-            saver.save(index, &pair)?;
+            saver.save(index, &pair, mask.as_ref())?;
         }
         let (ptw, pth) = (pair.template.width as f32, pair.template.height as f32);
         let runs: Vec<(Vec<Pose>, f64)> = match &matcher {
@@ -495,7 +495,14 @@ impl PairSaver {
         })
     }
 
-    fn save(&mut self, id: u64, pair: &SyntheticPair) -> Result<(), CliError> {
+    /// Writes the pair's images (and its template's mask, with `--mask-covered`) and one line
+    /// of `pairs.jsonl`, which `posematch match --pairs` reads as it is.
+    fn save(
+        &mut self,
+        id: u64,
+        pair: &SyntheticPair,
+        mask: Option<&TemplateMask>,
+    ) -> Result<(), CliError> {
         let template = format!("pair_{id:05}_template.png");
         let search = format!("pair_{id:05}_search.png");
         for (name, image) in [(&template, &pair.template), (&search, &pair.search)] {
@@ -504,7 +511,14 @@ impl PairSaver {
                 .save(&path)
                 .map_err(|e| CliError::io(&path, std::io::Error::other(e)))?;
         }
-        let line = json!({"id": id, "template": template, "image": search, "truth": pair.truth});
+        let mut line =
+            json!({"id": id, "template": template, "image": search, "truth": pair.truth});
+        if let Some(mask) = mask {
+            let name = format!("pair_{id:05}_mask.png");
+            let path = self.dir.join(&name);
+            std::fs::write(&path, mask.to_png()).map_err(|e| CliError::io(&path, e))?;
+            line["template_mask"] = json!(name);
+        }
         writeln!(self.index, "{line}").map_err(|e| CliError::io(&self.dir, e))
     }
 }

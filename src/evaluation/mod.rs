@@ -165,7 +165,7 @@ pub fn match_pair(
     // runs below, when none reaches the caller's `min_score`, as in `answer`.
     let verified_options = ValidOptions::derived(MatchOptions {
         min_score: Some(f32::MIN_POSITIVE),
-        covered_parts: Some(options.expects_covered_parts()),
+        covered_parts: Some(options.expects_covered_parts(&encoded.gray)),
         classical_fallback: false,
         ..(**options).clone()
     });

@@ -13,6 +13,11 @@ pub struct GrayImage32 {
 }
 
 impl GrayImage32 {
+    /// Whether some pixels are ignored (NaN: a template's mask leaves them out).
+    pub fn ignores_pixels(&self) -> bool {
+        self.values.iter().any(|v| v.is_nan())
+    }
+
     pub fn from_rgb(image: &RgbImage32) -> Self {
         Self {
             width: image.width as usize,

@@ -630,7 +630,10 @@ pub fn with_classical_fallback(
     options: &MatchOptions,
     trigger_score: f32,
 ) -> (Vec<Pose>, f64) {
-    if !options.classical_fallback || answers.iter().any(|p| p.score >= trigger_score) {
+    // A masked template's network candidates are weak (the network is shown the ignored
+    // pixels too, and the part differs there): its classical search always runs.
+    let verified = answers.iter().any(|p| p.score >= trigger_score);
+    if !options.classical_fallback || (verified && !template.ignores_pixels()) {
         return (answers, 0.0);
     }
     let start = Instant::now();
@@ -640,7 +643,7 @@ pub fn with_classical_fallback(
         poses.extend(verify_candidates(template, size, image, candidates, options).poses);
         poses = select(poses, options, size.0, size.1);
     }
-    if options.expects_covered_parts() && !poses.iter().any(|p| p.score >= trigger_score) {
+    if options.expects_covered_parts(template) && !poses.iter().any(|p| p.score >= trigger_score) {
         // The classical search correlates the whole template too: a covered quarter hides
         // the part from it as from the verification, so it searches without each quarter.
         let scorer = Verifier::for_options(template, image, options);

@@ -4,6 +4,7 @@
 //! engine and the matcher accept, so nothing below the boundary checks them again.
 
 use super::verification::Heads;
+use crate::imaging::GrayImage32;
 use std::ops::Deref;
 
 /// Restricts answers to angles in `[start, start + extent]` (degrees, counter-clockwise).
@@ -214,7 +215,10 @@ pub struct MatchOptions {
     /// Whether the verification also tries the template without each quarter, for parts a
     /// clamp or a cable partly covers (`matcher/verification.rs`, docs/industrial.md).
     /// `None`: when `min_score` is below [`COVERED_PARTS_BELOW`] (a quarter covered scores
-    /// about 0.75). Set by callers that lower `min_score` for their own reasons (the
+    /// about 0.75), and for a template with a mask: the network is shown the ignored pixels
+    /// too, where the part looks different, so its candidates are weak and the quarter
+    /// variants' own screens find what the masked template's alone miss (docs/industrial.md,
+    /// "Masks"). Set by callers that lower `min_score` for their own reasons (the
     /// evaluation keeps every answer) to keep the caller's choice.
     pub covered_parts: Option<bool>,
     /// With several templates in one call: two answers of different templates whose boxes
@@ -283,10 +287,12 @@ impl Default for MatchOptions {
 pub const UNTRUSTED_CANDIDATES_PER_INSTANCE: usize = 6;
 
 impl MatchOptions {
-    /// Whether partly covered parts are searched for ([`MatchOptions::covered_parts`]).
-    pub fn expects_covered_parts(&self) -> bool {
-        self.covered_parts
-            .unwrap_or(self.effective_min_score() < COVERED_PARTS_BELOW)
+    /// Whether partly covered parts are searched for with `template`
+    /// ([`MatchOptions::covered_parts`]).
+    pub fn expects_covered_parts(&self, template: &GrayImage32) -> bool {
+        self.covered_parts.unwrap_or(
+            self.effective_min_score() < COVERED_PARTS_BELOW || template.ignores_pixels(),
+        )
     }
 
     /// Most candidates verified per search where the network's heads are trusted:

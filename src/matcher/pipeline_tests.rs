@@ -261,6 +261,48 @@ fn when_no_candidate_verifies_the_classical_fallback_searches_the_image() {
     assert_eq!(fallback_ms, 0.0);
 }
 
+/// A mask says the part differs there; the network is shown the ignored pixels too, so its
+/// candidates are weak. A masked template searches with its quarter variants and the
+/// classical search even where an answer reached `min_score` already, at the default
+/// `min_score`; a template without a mask does not.
+#[test]
+fn a_masked_template_searches_its_quarters_and_the_image_whatever_verified() {
+    let (mut image, template, truth) = scene();
+    cover_top_left_quarter(&mut image, &truth);
+    // The covered quarter and a pixel beyond it, as one draws a mask with a margin.
+    let mut masked = template.clone();
+    for row in 0..20 {
+        for col in 0..20 {
+            masked.values[row * masked.width + col] = f32::NAN;
+        }
+    }
+    let options = MatchOptions {
+        max_instances: 2,
+        ..MatchOptions::default()
+    };
+    let min_score = options.effective_min_score();
+    assert!(options.expects_covered_parts(&masked));
+    assert!(!options.expects_covered_parts(&template));
+    // An answer elsewhere at min_score, as a look-alike in the photo would give.
+    let elsewhere = Pose {
+        score: min_score,
+        ..pose(30.0, 30.0, 0.0, 1.0, 0.9)
+    };
+    let (found, fallback_ms) =
+        with_classical_fallback(&masked, &image, vec![elsewhere], &options, min_score);
+    assert!(fallback_ms > 0.0);
+    let part = found
+        .iter()
+        .find(|p| (p.x - truth.x).hypot(p.y - truth.y) < 2.0)
+        .unwrap_or_else(|| panic!("the part is not among {found:?}"));
+    assert_is_truth(part, &truth);
+    assert!(part.score >= min_score, "{part:?}");
+    // Without a mask the answer stands and nothing more is searched.
+    let (kept, fallback_ms) =
+        with_classical_fallback(&template, &image, vec![elsewhere], &options, min_score);
+    assert_eq!((kept, fallback_ms), (vec![elsewhere], 0.0));
+}
+
 #[test]
 fn the_classical_fallback_does_not_search_large_images() {
     let (_, template, _) = scene();
@@ -433,7 +475,7 @@ fn a_part_with_a_quarter_covered_is_found_below_the_covered_parts_score() {
         min_score: Some(0.6),
         ..strict
     };
-    assert!(lenient.expects_covered_parts());
+    assert!(lenient.expects_covered_parts(&template));
     let found = verify_candidates(&template, (36.0, 36.0), &image, candidates, &lenient);
     assert_eq!(found.poses.len(), 1, "{:?}", found.poses);
     let part = found.poses[0];

@@ -32,8 +32,8 @@ use super::time_limit::TimeLimit;
 use crate::geometry::{Pose, rotated_iou, wrap_angle_deg};
 use crate::imaging::GrayImage32;
 use crate::refine::{
-    AngleScaleGrid, Coverage, NoiseLevel, NoisePoints, RankPoints, Scored, ShadingPoints,
-    Sharpness, TemplatePoints, align, align_from, fine_search, stayed_near,
+    AngleScaleGrid, Coverage, NoiseLevel, NoisePoints, RankPoints, SHARPNESS_READINGS, Scored,
+    ShadingPoints, Sharpness, TemplatePoints, align, align_from, fine_search, stayed_near,
 };
 
 /// Screen ZNCC below which a candidate is not worth confirming: a true object at the right
@@ -236,6 +236,51 @@ pub fn correlation_length(template: &GrayImage32) -> Option<f32> {
 /// `(similarity − chance) / (1 − chance)` clamped to [0, 1].
 fn above_chance(similarity: f32, chance: f32) -> f32 {
     ((similarity - chance) / (1.0 - chance)).clamp(0.0, 1.0)
+}
+
+/// Which way a [`Reading`] compared the template with the image (docs/accuracy.md, "What a
+/// score means").
+#[derive(Debug, Clone, Copy, PartialEq)]
+pub enum ReadingKind {
+    /// ZNCC of the whole template.
+    Whole,
+    /// Spearman's rho: unchanged by any increasing curve of the light ([`RankPoints`]).
+    Rank,
+    /// A gain and an offset that change across the part ([`ShadingPoints`]).
+    Shading,
+    /// The image's noise taken out of its variance ([`NoisePoints`]).
+    Denoised,
+    /// The template blurred by `defocus`, both by `smoothing` image pixels ([`Sharpness`]).
+    Sharpness { defocus: f32, smoothing: f32 },
+    /// The visible cells' similarity, weighed by their share of the structure ([`Coverage`]).
+    Visible,
+}
+
+/// One reading of a pose: a similarity, the chance level an unrelated patch reaches that way,
+/// and the share of the template it speaks for.
+#[derive(Debug, Clone, Copy, PartialEq)]
+pub struct Reading {
+    pub kind: ReadingKind,
+    pub similarity: f32,
+    pub chance: f32,
+    /// 1 for the whole template; the visible share for [`ReadingKind::Visible`].
+    pub share: f32,
+}
+
+impl Reading {
+    fn whole(kind: ReadingKind, similarity: f32, chance: f32) -> Self {
+        Self {
+            kind,
+            similarity,
+            chance,
+            share: 1.0,
+        }
+    }
+
+    /// `share × (similarity − chance) / (1 − chance)`, clamped: what this reading scores.
+    pub fn score(&self) -> f32 {
+        self.share * above_chance(self.similarity, self.chance)
+    }
 }
 
 /// Screens and confirms candidates of one template in one image.
@@ -454,32 +499,65 @@ impl<'a> Verifier<'a> {
     /// of collapsing with the whole-template correlation; an unrelated patch has few matching
     /// cells, and a blurred template's higher chance level takes back what the blur gave it.
     pub fn score_at(&self, pose: &Pose, similarity: f32) -> f32 {
-        let whole = self.score(similarity);
-        let rank = above_chance(self.ranks.similarity(self.image, pose), self.rank_chance);
-        let shading = self.shading_chance.map_or(0.0, |chance| {
-            above_chance(self.shading.similarity(self.image, pose), chance)
-        });
-        let denoised = self
+        self.readings_at(pose, similarity)
+            .iter()
+            .map(Reading::score)
+            .fold(0.0, f32::max)
+    }
+
+    /// Every reading [`Verifier::score_at`] takes the best of, each with its similarity and
+    /// chance level: what a score was made of, for diagnosis (`examples/diagnose`).
+    pub fn readings_at(&self, pose: &Pose, similarity: f32) -> Vec<Reading> {
+        let mut readings = vec![
+            Reading::whole(ReadingKind::Whole, similarity, self.chance),
+            Reading::whole(
+                ReadingKind::Rank,
+                self.ranks.similarity(self.image, pose),
+                self.rank_chance,
+            ),
+        ];
+        if let Some(chance) = self.shading_chance {
+            readings.push(Reading::whole(
+                ReadingKind::Shading,
+                self.shading.similarity(self.image, pose),
+                chance,
+            ));
+        }
+        if let Some(reading) = self
             .denoised
             .as_ref()
             .and_then(|(points, noise)| points.read(self.image, pose, *noise))
-            .map_or(0.0, |reading| {
-                let chance =
-                    (self.chance.powi(2) + CHANCE_LOG_HYPOTHESES * reading.noise_spread).sqrt();
-                above_chance(reading.similarity, chance.min(READING_MAX_CHANCE))
+        {
+            let chance =
+                (self.chance.powi(2) + CHANCE_LOG_HYPOTHESES * reading.noise_spread).sqrt();
+            readings.push(Reading::whole(
+                ReadingKind::Denoised,
+                reading.similarity,
+                chance.min(READING_MAX_CHANCE),
+            ));
+        }
+        readings.extend(
+            self.sharpness
+                .read(self.image, pose)
+                .into_iter()
+                .zip(SHARPNESS_READINGS)
+                .map(|(reading, (defocus, smoothing))| {
+                    Reading::whole(
+                        ReadingKind::Sharpness { defocus, smoothing },
+                        reading.similarity,
+                        reading.chance,
+                    )
+                }),
+        );
+        if let Some(reading) = self.coverage.measure(self.image, pose) {
+            readings.push(Reading {
+                kind: ReadingKind::Visible,
+                similarity: reading.visible_similarity,
+                chance: chance_of_share(self.independent, reading.visible_points),
+                share: reading.visible,
             });
-        let best = self
-            .sharpness
-            .read(self.image, pose)
-            .into_iter()
-            .map(|reading| above_chance(reading.similarity, reading.chance))
-            .fold(whole.max(rank).max(shading).max(denoised), f32::max);
-        let Some(reading) = self.coverage.measure(self.image, pose) else {
-            return best;
-        };
-        let chance = chance_of_share(self.independent, reading.visible_points);
-        let partial = reading.visible * above_chance(reading.visible_similarity, chance);
-        best.max(partial)
+        }
+        readings
     }
 
     /// The similarity of the template at `pose`: ZNCC over its support, in [-1, 1].
@@ -758,7 +836,7 @@ pub fn verify_candidates_until(
     heads: Heads,
     answer_by: Option<Instant>,
 ) -> Verification {
-    if !options.expects_covered_parts() || candidates.is_empty() {
+    if !options.expects_covered_parts(template) || candidates.is_empty() {
         return verify_template(template, size, image, candidates, options, heads, answer_by);
     }
     let mut all = verify_template(

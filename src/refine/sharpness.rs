@@ -94,7 +94,7 @@ impl<'a> Sharpness<'a> {
 /// `template` blurred by a Gaussian of `sigma` template pixels; pixels a mask ignores (NaN)
 /// stay ignored and lend nothing to their neighbours (normalised convolution).
 pub(crate) fn blurred_template(template: &GrayImage32, sigma: f32) -> GrayImage32 {
-    if !template.values.iter().any(|v| v.is_nan()) {
+    if !template.ignores_pixels() {
         return gaussian_blur(template, sigma);
     }
     let used = |v: f32| if v.is_nan() { 0.0 } else { 1.0 };
