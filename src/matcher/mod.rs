@@ -3,8 +3,8 @@
 //!    ([`plan`]), run it on batches of same-sized pieces, read the heatmap's peaks ([`peaks`])
 //!    as candidate poses in the public convention ([`Matcher::propose`]);
 //! 2. **verification** on the image ([`verification`]): screen every candidate, confirm the best;
-//! 3. **classical fallback** ([`classical`]) when no answer reaches `min_score`: its peaks go
-//!    through the same verification;
+//! 3. **classical fallback** ([`classical`]) when no answer reaches `min_score` (for a masked
+//!    template always): its peaks go through the same verification;
 //! 4. **selection** ([`selection`]): ranges, non-maximum suppression, `min_score`,
 //!    `max_instances`.
 //!
@@ -619,8 +619,9 @@ pub fn with_classical_fallbacks(
     (poses, total_ms)
 }
 
-/// `answers` and, when none of them reaches `trigger_score` (the caller's `min_score`) and
-/// `options` ask for it, those of the classical fallback ([`classical::fallback_candidates`],
+/// `answers` and, when none of them reaches `trigger_score` (the caller's `min_score`; for a
+/// template with a mask whatever they reach) and `options` ask for it, those of the classical
+/// fallback ([`classical::fallback_candidates`],
 /// verified like the network's candidates; `network_score` 0), selected together under
 /// `options`; with the milliseconds the fallback took (0 when it did not run).
 pub fn with_classical_fallback(
