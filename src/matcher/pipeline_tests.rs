@@ -311,6 +311,17 @@ fn the_classical_fallback_does_not_search_large_images() {
     assert!(classical::fallback_candidates(&template, &large, &options).is_none());
 }
 
+/// A masked template's fallback searches three scales where they fit the budget and one
+/// where only that does: a mid-sized image keeps its fallback.
+#[test]
+fn a_masked_templates_fallback_narrows_to_one_scale_before_giving_up() {
+    let (_, mut masked, _) = scene();
+    masked.values[..36 * 18].iter_mut().for_each(|v| *v = f32::NAN);
+    let options = MatchOptions::default();
+    assert!(classical::fallback_candidates(&masked, &texture(700, 700, 3), &options).is_some());
+    assert!(classical::fallback_candidates(&masked, &texture(1400, 1400, 3), &options).is_none());
+}
+
 /// The network reads an angle as `±acos(cos)` with the sign from its sign map; on the
 /// elongated parts of `cargo bench --bench frames` the sign is what it gets wrong, with the
 /// peak a few pixels off the part. The screen looks at the mirrored angle too.
