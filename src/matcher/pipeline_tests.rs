@@ -316,7 +316,9 @@ fn the_classical_fallback_does_not_search_large_images() {
 #[test]
 fn a_masked_templates_fallback_narrows_to_one_scale_before_giving_up() {
     let (_, mut masked, _) = scene();
-    masked.values[..36 * 18].iter_mut().for_each(|v| *v = f32::NAN);
+    masked.values[..36 * 18]
+        .iter_mut()
+        .for_each(|v| *v = f32::NAN);
     let options = MatchOptions::default();
     assert!(classical::fallback_candidates(&masked, &texture(700, 700, 3), &options).is_some());
     assert!(classical::fallback_candidates(&masked, &texture(1400, 1400, 3), &options).is_none());
