@@ -32,8 +32,8 @@ use super::time_limit::TimeLimit;
 use crate::geometry::{Pose, rotated_iou, wrap_angle_deg};
 use crate::imaging::GrayImage32;
 use crate::refine::{
-    AngleScaleGrid, Coverage, NoiseLevel, NoisePoints, RankPoints, SHARPNESS_READINGS, Scored,
-    ShadingPoints, Sharpness, TemplatePoints, align, align_from, fine_search, stayed_near,
+    AngleScaleGrid, Coverage, NoiseLevel, NoisePoints, RankPoints, Scored, ShadingPoints,
+    Sharpness, TemplatePoints, align, align_from, fine_search, stayed_near,
 };
 
 /// Screen ZNCC below which a candidate is not worth confirming: a true object at the right
@@ -540,8 +540,8 @@ impl<'a> Verifier<'a> {
             self.sharpness
                 .read(self.image, pose)
                 .into_iter()
-                .zip(SHARPNESS_READINGS)
-                .map(|(reading, (defocus, smoothing))| {
+                .map(|reading| {
+                    let (defocus, smoothing) = reading.blur;
                     Reading::whole(
                         ReadingKind::Sharpness { defocus, smoothing },
                         reading.similarity,

@@ -40,7 +40,7 @@ pub(crate) use coverage::Coverage;
 pub(crate) use noise::{NoiseLevel, NoisePoints};
 pub(crate) use rank::RankPoints;
 pub(crate) use shading::ShadingPoints;
-pub(crate) use sharpness::{READINGS as SHARPNESS_READINGS, Sharpness};
+pub(crate) use sharpness::Sharpness;
 
 use crate::imaging::GrayImage32;
 

@@ -25,6 +25,8 @@ pub(crate) const READINGS: [(f32, f32); 4] = [(1.0, 0.0), (2.0, 0.0), (3.0, 0.0)
 /// One reading's similarity and the chance level of its blurred template.
 #[derive(Debug, Clone, Copy, PartialEq)]
 pub(crate) struct SharpnessReading {
+    /// Which of [`READINGS`]: `(defocus, smoothing)` in image pixels.
+    pub blur: (f32, f32),
     /// ZNCC of the blurred template with the (smoothed) image at the pose, in [-1, 1].
     pub similarity: f32,
     /// The blurred template's [`Sharpness::chance`] level.
@@ -83,6 +85,7 @@ impl<'a> Sharpness<'a> {
                     )
                 };
                 SharpnessReading {
+                    blur: (defocus, smoothing),
                     similarity,
                     chance: (self.chance)(&template),
                 }
