@@ -490,7 +490,7 @@ impl<'a> Verifier<'a> {
     ///   gain and an offset that change across the part ([`ShadingPoints`]), and, for a
     ///   detailed template, the correlation with the image's noise taken out of the image's
     ///   variance ([`NoisePoints`], held to its chance level plus the noise's fluctuation);
-    /// - the share of the template that is visible (by structure, cell by cell:
+    /// - the share of the template that is visible (by area with structure, cell by cell:
     ///   [`Coverage`]) times the visible cells' similarity above the chance level of that
     ///   smaller part.
     ///

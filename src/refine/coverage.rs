@@ -3,8 +3,8 @@
 //! Why: one ZNCC over the whole template collapses when a quarter of the part is covered (a
 //! clamp, a cable, a label): the covered pixels add image variance and no covariance, and the
 //! chance-corrected score of a clearly visible part falls from above 0.9 to about 0.5. Halcon's
-//! score is the visible share of the model; this is ours: the share of the template's structure
-//! whose cell matches ([`CoverageReading::visible`]), and how well the visible cells match
+//! score is the visible share of the model; this is ours: the share of the template's area with
+//! structure whose cell matches ([`CoverageReading::visible`]), and how well the visible cells match
 //! ([`CoverageReading::visible_similarity`]), together or each cell with its own gain and
 //! offset: a light that falls across the part (a lamp on one side, a reflector) changes the
 //! gain from cell to cell, which one ZNCC over all the cells counts as mismatch. The verifier
@@ -74,7 +74,8 @@ struct Cell {
     /// Σ t and Σ t² of its template values.
     t: f64,
     tt: f64,
-    /// Its share of the template's structure (Σ of its own squared deviations), 0 when flat.
+    /// What it counts for in the visible share: its points, 0 when flat
+    /// ([`Coverage::new`]).
     weight: f32,
 }
 
@@ -88,7 +89,8 @@ pub(crate) struct Coverage {
 /// What [`Coverage::measure`] found at one pose.
 #[derive(Debug, Clone, Copy, PartialEq)]
 pub(crate) struct CoverageReading {
-    /// Share (by structure) of the template whose cell matches, in [0, 1].
+    /// Share of the template's structured area whose cell matches, in [0, 1]: a quarter
+    /// covered is 0.75 whatever that quarter held.
     pub visible: f32,
     /// How well the matching cells match, in [-1, 1]: the better of one ZNCC over them
     /// together (which also counts the contrast between cells: what finds a part with a
@@ -103,7 +105,14 @@ pub(crate) struct CoverageReading {
 }
 
 impl Coverage {
-    /// Every template pixel up to 48 a side (the similarity's support), in cells.
+    /// Every template pixel up to 48 a side (the similarity's support), in cells. Each cell
+    /// with structure counts for its points in the visible share, as each of a shape model's
+    /// edge points counts once in Halcon's. Weighing a cell by its grey-level variance instead
+    /// made the share of a covered quarter depend on its contrast (0.45–0.94 for a quarter),
+    /// and a quarter covered scored under 0.7 in a fifth of the pairs. Tuning set (lomiri
+    /// photos, 200 S1.5 pairs, `--min-score 0.7`), found by variance / by area: plain cover
+    /// 70.5 / 84.0 %, clutter 74.5 / 83.0 %; clean 99.5 / 99.5 %; answers at or above 0.7 in
+    /// scenes without the part 37 / 37.
     pub(crate) fn new(template: &GrayImage32) -> Self {
         let (offsets, values) = super::grid_points(template, 48);
         let mean = values.iter().sum::<f32>() / values.len().max(1) as f32;
@@ -138,7 +147,7 @@ impl Coverage {
                     lanes: PointLanes::new(&offsets, &values),
                     t,
                     tt,
-                    weight: if flat { 0.0 } else { spread_sq as f32 },
+                    weight: if flat { 0.0 } else { n as f32 },
                 }
             })
             .collect();
@@ -247,6 +256,22 @@ mod tests {
         assert!((0.7..0.82).contains(&covered.visible), "{covered:?}");
         assert!(covered.visible_similarity > 0.999, "{covered:?}");
         assert!((covered.visible_points - 0.75).abs() < 0.07, "{covered:?}");
+    }
+
+    #[test]
+    fn a_covered_quarter_is_a_quarter_whatever_its_contrast() {
+        // The covered (bottom-right) quarter holds four times the contrast of the rest:
+        // weighed by variance it would be 16 of 19 parts of the structure.
+        let base = textured(36, 36, 1);
+        let template = GrayImage32::from_fn(36, 36, |x, y| {
+            let v = base.values[y * 36 + x] - 0.5;
+            0.5 + if x >= 18 && y >= 18 { v } else { v / 4.0 }
+        });
+        let pose = at(40.0 + 17.5, 30.0 + 17.5);
+        let covered = Coverage::new(&template)
+            .measure(&scene(&template, true), &pose)
+            .unwrap();
+        assert!((covered.visible - 0.75).abs() < 0.05, "{covered:?}");
     }
 
     #[test]
