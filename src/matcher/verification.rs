@@ -46,13 +46,14 @@ pub const SCREEN_MIN: f32 = 0.3;
 /// light that falls across the frame (1.3 to 0.4) a part's own candidate was screened to a
 /// wrong angle or scale (the gain across the part pulls the alignment), while a clean part's
 /// screen reaches 0.97 and costs nothing more. Tuning photos (lomiri, 200 S1.5 pairs, seed 0),
-/// found at the defaults: uneven light 91.0 → 94.5 %, dark-gamma 95.5 → 96.0 %, clean 99.5 %,
-/// noise 98.5 %, defocus 94.0 %, JPEG 100 % unchanged; the same with 0.93 but dark-gamma
-/// 95.5 %. Screening every candidate on both levels also gave 94.5 % at a third more time.
+/// found at the defaults: uneven light 91.0 → 94.0 %, dark-gamma 95.5 → 97.0 %, clean 99.5 %,
+/// noise 98.5 %, defocus 94.0 %, JPEG 100 % unchanged (docs/industrial.md, "Camera
+/// conditions", has the variants measured).
 const RESCREEN_BELOW: f32 = 0.97;
 
 /// Half the side of the window whose mean evens out the light on the screening level, in
-/// objects (the object's side on the level, [`SCREEN_OBJECT_SIDE`] at most).
+/// object sides on the level (tuning photos, uneven light / defocus: 1.0 gave 94.0 / 93.5 %,
+/// 1.7 94.0 / 94.0 %).
 const EVEN_LIGHT_WINDOW: f32 = 1.7;
 
 /// Survivors of the screen confirmed beyond `max_instances` (near-misses of the screen ranking).
@@ -628,11 +629,15 @@ impl<'a> Verifier<'a> {
     }
 
     /// A second look at a candidate whose [`Verifier::screen`] gave `first`: screened again on
-    /// the level with the light evened out (each pixel divided by the mean of a window about
-    /// twice the object's side: a gain that changes across the frame becomes nearly constant
-    /// over the part), and kept where that pose correlates better on the level itself, so a
-    /// screen that evening the light leads astray changes nothing.
+    /// the level with the light evened out (each pixel divided by the mean of a window
+    /// [`EVEN_LIGHT_WINDOW`] object sides either way: a gain that changes across the frame
+    /// becomes nearly constant over the part), and kept where that pose correlates better on
+    /// the level itself, so a screen that evening the light leads astray changes nothing. A
+    /// first screen that already reached [`RESCREEN_BELOW`] is kept as it is.
     pub fn screen_evened(&self, candidate: &Pose, first: Screened) -> Screened {
+        if first.score >= RESCREEN_BELOW {
+            return first;
+        }
         let evened = self.evened_level.get_or_init(|| {
             let image = evened_light(&self.level_image, self.even_light_radius);
             let gradients = (image.width * image.height <= WHOLE_LEVEL_PIXELS)
@@ -640,13 +645,9 @@ impl<'a> Verifier<'a> {
             ScreeningLevel { image, gradients }
         });
         let second = self.screen_on(candidate, &evened.image, evened.gradients.as_ref());
-        let f = self.level_factor;
-        let on_level = Pose {
-            x: (second.pose.x + 0.5) / f - 0.5,
-            y: (second.pose.y + 0.5) / f - 0.5,
-            ..second.pose
-        };
-        let score = self.level_points.score(&self.level_image, &on_level);
+        let score = self
+            .level_points
+            .score(&self.level_image, &self.on_level(&second.pose));
         if score > first.score {
             Screened {
                 pose: second.pose,
@@ -657,6 +658,16 @@ impl<'a> Verifier<'a> {
         }
     }
 
+    /// `pose` (full resolution) on the screening level.
+    fn on_level(&self, pose: &Pose) -> Pose {
+        let f = self.level_factor;
+        Pose {
+            x: (pose.x + 0.5) / f - 0.5,
+            y: (pose.y + 0.5) / f - 0.5,
+            ..*pose
+        }
+    }
+
     fn screen_on(
         &self,
         candidate: &Pose,
@@ -664,11 +675,7 @@ impl<'a> Verifier<'a> {
         level_gradients: Option<&align::GradientWindow>,
     ) -> Screened {
         let f = self.level_factor;
-        let on_level = Pose {
-            x: (candidate.x + 0.5) / f - 0.5,
-            y: (candidate.y + 0.5) / f - 0.5,
-            ..*candidate
-        };
+        let on_level = self.on_level(candidate);
         let windows = self.level_grid.search_windows(
             &self.level_points,
             level_image,
