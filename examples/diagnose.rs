@@ -3,8 +3,9 @@
 //! candidate near it, screened below the survivors, confirmed lower than a decoy, or a decoy
 //! that genuinely matches at least as well as the truth — with the rank and heatmap value of
 //! the object's peak among all peaks; with `--readings`, what each reading made of the right
-//! answers that scored under 0.9. Mirrors `verify_candidates` (the best 20 screens ranked
-//! by their score, `RANKED_BEYOND_SURVIVORS`, the best two confirmed).
+//! answers that scored under 0.9. Mirrors `verify_candidates` (the second screen on the
+//! light-evened level where no first screen reaches 0.97, the best 20 screens ranked by their
+//! score, `RANKED_BEYOND_SURVIVORS`, the best two confirmed).
 //! Use it on tuning photos, never on evaluation photos:
 //!
 //! `cargo run --release --example diagnose -- --images DIR --count 500 [--condition C] [--weights W]`
@@ -14,7 +15,7 @@ use posematch::cli::{ModelArgs, load_model};
 use posematch::evaluation::pair_error;
 use posematch::geometry::Pose;
 use posematch::imaging::GrayImage32;
-use posematch::matcher::verification::{RANKED_BEYOND_SURVIVORS, Verifier};
+use posematch::matcher::verification::{RANKED_BEYOND_SURVIVORS, Verifier, wants_second_screen};
 use posematch::matcher::{MatchJob, MatchOptions, ValidOptions};
 use posematch::synth::conditions::{self, Condition};
 use posematch::synth::{Level, PairSpec, PhotoSet, make_pair};
@@ -119,6 +120,12 @@ fn main() {
                 .enumerate()
                 .map(|(i, c)| (i, *c, verifier.screen(c)))
                 .collect();
+        // One instance wanted, as in `posematch eval`'s pairs.
+        if wants_second_screen(screened.iter().map(|s| &s.2), 1) {
+            for (_, candidate, screen) in &mut screened {
+                *screen = verifier.screen_evened(candidate, *screen);
+            }
+        }
         screened.sort_by(|a, b| b.2.score.total_cmp(&a.2.score));
         // The best screens by their score, as `verify_candidates` ranks them (two survivors).
         let ranked = screened.len().min(2 + RANKED_BEYOND_SURVIVORS);

@@ -804,6 +804,20 @@ impl<'a> Verifier<'a> {
     }
 }
 
+/// Whether a job's candidates are screened a second time, on the level with the light evened
+/// out ([`Verifier::screen_evened`]): fewer than `wanted` (the caller's `max_instances`) of
+/// their first `screens` reach [`RESCREEN_BELOW`].
+pub fn wants_second_screen<'a>(
+    screens: impl IntoIterator<Item = &'a Screened>,
+    wanted: usize,
+) -> bool {
+    screens
+        .into_iter()
+        .filter(|screen| screen.score >= RESCREEN_BELOW)
+        .count()
+        < wanted
+}
+
 /// Screened candidates beyond the survivors' budget that are ranked by their score before the
 /// survivors are chosen ([`rank_by_score`]). Tuning set (47 held-out corpus photos + 2 lomiri
 /// images, S1.5, 200 pairs, seed 0, default weights), found at the defaults with 0 / 8 / 18 /
@@ -1014,11 +1028,10 @@ fn verify_template(
         .filter(|_| limit.in_time())
         .map(|candidate| (candidate, verifier.screen(&candidate)))
         .collect();
-    let reached = screened
-        .iter()
-        .filter(|(_, screen)| screen.score >= RESCREEN_BELOW)
-        .count();
-    if reached < options.max_instances {
+    if wants_second_screen(
+        screened.iter().map(|(_, screen)| screen),
+        options.max_instances,
+    ) {
         screened = screened
             .into_par_iter()
             .filter(|_| limit.in_time())
