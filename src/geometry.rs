@@ -16,8 +16,9 @@ pub struct Pose {
     pub scale_x: f32,
     pub scale_y: f32,
     /// How well the template matches the image at this pose, in [0, 1]: the verified similarity
-    /// (ZNCC over the template at the refined pose, negative values as 0), or the network's
-    /// heatmap value where nothing verified it (`no_refine`).
+    /// (ZNCC over the template at the refined pose, negative values as 0; at least 0.9 where the
+    /// answer stands out from the image's other places, docs/accuracy.md "What a score
+    /// means"), or the network's heatmap value where nothing verified it (`no_refine`).
     pub score: f32,
     /// The network's heatmap value at the instance's peak (0 where no network was involved).
     #[serde(default)]
