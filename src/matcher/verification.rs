@@ -21,9 +21,8 @@
 //!
 //! 3. **Stand out** ([`lift_standing_out`]): an answer that scores far above every other place
 //!    the screen scored in the same image reports at least the default `min_score`
-//!    (docs/accuracy.md, "What a score means"). JPEG and defocus
-//!    lower a part's correlation and its look-alikes' alike; the order holds where the level
-//!    does not.
+//!    (docs/accuracy.md, "What a score means"). JPEG and defocus lower a part's correlation
+//!    and its look-alikes' alike; the order holds where the level does not.
 //!
 //! [`verify_candidates`] runs these over one image's candidates: screen every candidate, confirm
 //! the best distinct survivors, lift those that stand out, then hand the confirmed poses to
@@ -833,7 +832,7 @@ pub fn wants_second_screen<'a>(
 /// defocus-2 76.5 / 79.0 / 80.5 / 80.0 / – %, at 0 / 1 / 2 / 4 / 12 ms more a pair (27–30 ms).
 /// 48 since 2026-11-28 (18 before): the ranked screens are also the other places an answer
 /// must stand out from ([`lift_standing_out`]); with twenty the image's decoys are too few to
-/// say how high they reach (same set, the lift without its network gate, jpeg-30 / defocus-2
+/// say how high they reach (same set, floor 0.6, margin 0.3, jpeg-30 / defocus-2
 /// found 93.0 / 93.0 % with 20 ranked, 93.5 / 93.0 % with 50; answers ≥ 0.9 in the three
 /// scenes-without-the-part sets 48 / 44 / 43 against 45 / 42 / 41), about 2 ms more a pair.
 pub const RANKED_BEYOND_SURVIVORS: usize = 48;
@@ -910,12 +909,16 @@ const SAME_PLACE_IOU: f32 = 0.1;
 /// [`STAND_OUT_FLOOR`] or more just above it, splits them: the answers above it stand out (as
 /// in Lowe's ratio test, the best is compared with the next best that is not the same thing;
 /// several parts of one template in a frame stand out together). No place below the band (too
-/// few candidates to say how high the image's decoys reach): nothing stands out. Only the
+/// few candidates to say how high the image's decoys reach, or no screen ranked): nothing
+/// stands out. Only the
 /// image decides, not the network's heatmap, whose values are the weights' own scale: with a
 /// heatmap gate (0.2, margin 0.3) the tuning set found fewer parts (jpeg-30 88.5 %, defocus-2
 /// 90.5 %, against 90.5 / 91.0 % at margin 0.4 without it) with as many answers without the
 /// part (40 / 38 / 40).
 fn lift_standing_out(answers: &mut [Pose], ranked: &[(f32, Pose)], (tw, th): (f32, f32)) {
+    if ranked.is_empty() {
+        return;
+    }
     let answer_corners: Vec<_> = answers.iter().map(|pose| pose.corners(tw, th)).collect();
     let mut scores: Vec<f32> = answers.iter().map(|pose| pose.score).collect();
     scores.extend(ranked.iter().filter_map(|(score, screened)| {
@@ -928,9 +931,9 @@ fn lift_standing_out(answers: &mut [Pose], ranked: &[(f32, Pose)], (tw, th): (f3
     scores.sort_by(|a, b| b.total_cmp(a));
     let Some(lowest_standing_out) = scores
         .windows(2)
-        .filter(|pair| pair[0] >= STAND_OUT_FLOOR && pair[0] - pair[1] >= STAND_OUT_MARGIN)
+        .rev()
+        .find(|pair| pair[0] >= STAND_OUT_FLOOR && pair[0] - pair[1] >= STAND_OUT_MARGIN)
         .map(|pair| pair[0])
-        .last()
     else {
         return;
     };
@@ -1162,9 +1165,7 @@ fn verify_template(
             },
         )
         .collect();
-    if !ranked.is_empty() {
-        lift_standing_out(&mut confirmed, &ranked, (tw, th));
-    }
+    lift_standing_out(&mut confirmed, &ranked, (tw, th));
     let poses = select(confirmed, options, tw, th);
     Verification {
         poses,
@@ -1236,7 +1237,7 @@ mod tests {
     }
 
     /// A 36x36 template's pose at `(x, y)`, upright, scale 1.
-    fn placed(x: f32, y: f32, score: f32, network_score: f32) -> Pose {
+    fn placed(x: f32, y: f32, score: f32) -> Pose {
         Pose {
             x,
             y,
@@ -1244,7 +1245,7 @@ mod tests {
             scale_x: 1.0,
             scale_y: 1.0,
             score,
-            network_score,
+            network_score: 0.0,
         }
     }
 
@@ -1254,7 +1255,7 @@ mod tests {
         scores
             .iter()
             .enumerate()
-            .map(|(i, &score)| (score, placed(50.0 * i as f32, 300.0, score, 0.0)))
+            .map(|(i, &score)| (score, placed(50.0 * i as f32, 300.0, score)))
             .collect()
     }
 
@@ -1262,28 +1263,28 @@ mod tests {
 
     #[test]
     fn an_answer_that_stands_out_from_every_other_place_reports_the_default_min_score() {
-        let mut answers = vec![placed(100.0, 0.0, 0.72, 0.5)];
+        let mut answers = vec![placed(100.0, 0.0, 0.72)];
         let mut ranked = decoys(&[0.31, 0.25, 0.2]);
         // The answer's own screen is the same place, not a decoy.
-        ranked.push((0.7, placed(101.0, 1.0, 0.7, 0.0)));
+        ranked.push((0.7, placed(101.0, 1.0, 0.7)));
         lift_standing_out(&mut answers, &ranked, SIZE);
         assert_eq!(answers[0].score, STAND_OUT_SCORE);
         // An answer above the default level keeps its own score.
-        let mut answers = vec![placed(100.0, 0.0, 0.97, 0.5)];
+        let mut answers = vec![placed(100.0, 0.0, 0.97)];
         lift_standing_out(&mut answers, &ranked, SIZE);
         assert_eq!(answers[0].score, 0.97);
     }
 
     #[test]
     fn an_answer_with_a_decoy_within_the_margin_is_not_lifted() {
-        let mut answers = vec![placed(100.0, 0.0, 0.72, 0.5)];
+        let mut answers = vec![placed(100.0, 0.0, 0.72)];
         lift_standing_out(&mut answers, &decoys(&[0.35, 0.3, 0.2]), SIZE);
         assert_eq!(answers[0].score, 0.72);
     }
 
     #[test]
     fn an_answer_below_the_floor_is_not_lifted() {
-        let mut answers = vec![placed(0.0, 0.0, STAND_OUT_FLOOR - 0.02, 0.9)];
+        let mut answers = vec![placed(0.0, 0.0, STAND_OUT_FLOOR - 0.02)];
         lift_standing_out(&mut answers, &decoys(&[0.1, 0.05]), SIZE);
         assert_eq!(answers[0].score, STAND_OUT_FLOOR - 0.02);
     }
@@ -1291,9 +1292,9 @@ mod tests {
     #[test]
     fn several_parts_above_the_same_empty_band_stand_out_together() {
         let mut answers = vec![
-            placed(0.0, 0.0, 0.8, 0.6),
-            placed(100.0, 0.0, 0.76, 0.4),
-            placed(200.0, 0.0, 0.3, 0.3),
+            placed(0.0, 0.0, 0.8),
+            placed(100.0, 0.0, 0.76),
+            placed(200.0, 0.0, 0.3),
         ];
         lift_standing_out(&mut answers, &decoys(&[0.3, 0.25, 0.2]), SIZE);
         let scores: Vec<f32> = answers.iter().map(|a| a.score).collect();
@@ -1302,8 +1303,8 @@ mod tests {
 
     #[test]
     fn with_no_other_place_scored_nothing_stands_out() {
-        let mut answers = vec![placed(100.0, 0.0, 0.8, 0.6)];
-        lift_standing_out(&mut answers, &[(0.78, placed(100.0, 0.0, 0.78, 0.0))], SIZE);
+        let mut answers = vec![placed(100.0, 0.0, 0.8)];
+        lift_standing_out(&mut answers, &[(0.78, placed(100.0, 0.0, 0.78))], SIZE);
         assert_eq!(answers[0].score, 0.8);
     }
 }
