@@ -26,6 +26,20 @@ pub struct Pose {
 }
 
 impl Pose {
+    /// An upright pose at scale 1 with `score` and no heatmap value (tests).
+    #[cfg(test)]
+    pub fn upright(x: f32, y: f32, score: f32) -> Self {
+        Self {
+            x,
+            y,
+            angle_deg: 0.0,
+            scale_x: 1.0,
+            scale_y: 1.0,
+            score,
+            network_score: 0.0,
+        }
+    }
+
     /// Image position of template offset `(u, v)` (template pixels from its centre).
     pub fn map_point(&self, u: f32, v: f32) -> (f32, f32) {
         let (s, c) = self.angle_deg.to_radians().sin_cos();

@@ -66,29 +66,17 @@ pub fn suppress_across_templates(
 mod tests {
     use super::*;
 
-    fn pose(x: f32, y: f32, score: f32) -> Pose {
-        Pose {
-            x,
-            y,
-            angle_deg: 0.0,
-            scale_x: 1.0,
-            scale_y: 1.0,
-            score,
-            network_score: 0.0,
-        }
-    }
-
     #[test]
     fn of_two_templates_on_one_object_only_the_better_scoring_answer_is_kept() {
         let sizes = [(40.0, 20.0), (36.0, 20.0), (40.0, 20.0)];
         let poses = vec![
-            (0, pose(100.0, 100.0, 0.93)),
+            (0, Pose::upright(100.0, 100.0, 0.93)),
             // Template 1 at nearly the same place: the same object, scoring higher.
-            (1, pose(101.0, 100.0, 0.97)),
+            (1, Pose::upright(101.0, 100.0, 0.97)),
             // Template 0 again, elsewhere: another object, kept.
-            (0, pose(300.0, 100.0, 0.91)),
+            (0, Pose::upright(300.0, 100.0, 0.91)),
             // Template 2 beside template 1's answer but hardly overlapping: kept.
-            (2, pose(138.0, 100.0, 0.95)),
+            (2, Pose::upright(138.0, 100.0, 0.95)),
         ];
         let kept = suppress_across_templates(poses, &sizes, 0.5);
         let found: Vec<(usize, f32)> = kept.iter().map(|(t, p)| (*t, p.x)).collect();
@@ -99,7 +87,10 @@ mod tests {
     fn overlapping_answers_of_one_template_are_left_as_selected() {
         // `select` already decided between answers of one template (max_overlap may be 1).
         let sizes = [(40.0, 20.0)];
-        let poses = vec![(0, pose(100.0, 100.0, 0.93)), (0, pose(101.0, 100.0, 0.92))];
+        let poses = vec![
+            (0, Pose::upright(100.0, 100.0, 0.93)),
+            (0, Pose::upright(101.0, 100.0, 0.92)),
+        ];
         assert_eq!(suppress_across_templates(poses, &sizes, 0.5).len(), 2);
     }
 }

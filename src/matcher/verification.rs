@@ -1236,26 +1236,13 @@ mod tests {
         assert!(after < 0.1, "left after evening {after} (before {before})");
     }
 
-    /// A 36x36 template's pose at `(x, y)`, upright, scale 1.
-    fn placed(x: f32, y: f32, score: f32) -> Pose {
-        Pose {
-            x,
-            y,
-            angle_deg: 0.0,
-            scale_x: 1.0,
-            scale_y: 1.0,
-            score,
-            network_score: 0.0,
-        }
-    }
-
     /// Screens scored `scores`, each at its own place away from (0..200, 0) where the answers
     /// lie.
     fn decoys(scores: &[f32]) -> Vec<(f32, Pose)> {
         scores
             .iter()
             .enumerate()
-            .map(|(i, &score)| (score, placed(50.0 * i as f32, 300.0, score)))
+            .map(|(i, &score)| (score, Pose::upright(50.0 * i as f32, 300.0, score)))
             .collect()
     }
 
@@ -1263,28 +1250,28 @@ mod tests {
 
     #[test]
     fn an_answer_that_stands_out_from_every_other_place_reports_the_default_min_score() {
-        let mut answers = vec![placed(100.0, 0.0, 0.72)];
+        let mut answers = vec![Pose::upright(100.0, 0.0, 0.72)];
         let mut ranked = decoys(&[0.31, 0.25, 0.2]);
         // The answer's own screen is the same place, not a decoy.
-        ranked.push((0.7, placed(101.0, 1.0, 0.7)));
+        ranked.push((0.7, Pose::upright(101.0, 1.0, 0.7)));
         lift_standing_out(&mut answers, &ranked, SIZE);
         assert_eq!(answers[0].score, STAND_OUT_SCORE);
         // An answer above the default level keeps its own score.
-        let mut answers = vec![placed(100.0, 0.0, 0.97)];
+        let mut answers = vec![Pose::upright(100.0, 0.0, 0.97)];
         lift_standing_out(&mut answers, &ranked, SIZE);
         assert_eq!(answers[0].score, 0.97);
     }
 
     #[test]
     fn an_answer_with_a_decoy_within_the_margin_is_not_lifted() {
-        let mut answers = vec![placed(100.0, 0.0, 0.72)];
+        let mut answers = vec![Pose::upright(100.0, 0.0, 0.72)];
         lift_standing_out(&mut answers, &decoys(&[0.35, 0.3, 0.2]), SIZE);
         assert_eq!(answers[0].score, 0.72);
     }
 
     #[test]
     fn an_answer_below_the_floor_is_not_lifted() {
-        let mut answers = vec![placed(0.0, 0.0, STAND_OUT_FLOOR - 0.02)];
+        let mut answers = vec![Pose::upright(0.0, 0.0, STAND_OUT_FLOOR - 0.02)];
         lift_standing_out(&mut answers, &decoys(&[0.1, 0.05]), SIZE);
         assert_eq!(answers[0].score, STAND_OUT_FLOOR - 0.02);
     }
@@ -1292,9 +1279,9 @@ mod tests {
     #[test]
     fn several_parts_above_the_same_empty_band_stand_out_together() {
         let mut answers = vec![
-            placed(0.0, 0.0, 0.8),
-            placed(100.0, 0.0, 0.76),
-            placed(200.0, 0.0, 0.3),
+            Pose::upright(0.0, 0.0, 0.8),
+            Pose::upright(100.0, 0.0, 0.76),
+            Pose::upright(200.0, 0.0, 0.3),
         ];
         lift_standing_out(&mut answers, &decoys(&[0.3, 0.25, 0.2]), SIZE);
         let scores: Vec<f32> = answers.iter().map(|a| a.score).collect();
@@ -1303,8 +1290,12 @@ mod tests {
 
     #[test]
     fn with_no_other_place_scored_nothing_stands_out() {
-        let mut answers = vec![placed(100.0, 0.0, 0.8)];
-        lift_standing_out(&mut answers, &[(0.78, placed(100.0, 0.0, 0.78))], SIZE);
+        let mut answers = vec![Pose::upright(100.0, 0.0, 0.8)];
+        lift_standing_out(
+            &mut answers,
+            &[(0.78, Pose::upright(100.0, 0.0, 0.78))],
+            SIZE,
+        );
         assert_eq!(answers[0].score, 0.8);
     }
 }
