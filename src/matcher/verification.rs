@@ -891,10 +891,46 @@ pub const STAND_OUT_FLOOR: f32 = 0.6;
 /// 33 / 42 / 40 / 39 / 37, 39 / 41 / 40 / 39 / 39 — at 0.4 the new ones are copies of the part
 /// that the textures repeat but one (same angle, scales 0.7x).
 pub const STAND_OUT_MARGIN: f32 = 0.4;
-/// The score an answer that stands out reports at least: the default `min_score`'s level.
-pub const STAND_OUT_SCORE: f32 = 0.9;
+/// The score an answer that stands out reports at least: the default `min_score`'s level, 0.9,
+/// rounded up to the next `f32` so that it is at least 0.9 in double precision too (a client
+/// that reads the `float` as a double and compares it with 0.9 keeps it; 0.9 as an `f32` is
+/// 0.89999998 as a double).
+pub const STAND_OUT_SCORE: f32 = f32::from_bits(0.9f32.to_bits() + 1);
 /// Boxes overlapping by more than this (IoU) are one place.
 const SAME_PLACE_IOU: f32 = 0.1;
+/// Factor by which an answer's scales are changed, one axis or both, to ask whether its own
+/// pose stands out ([`ambiguous_scales`]).
+const SCALE_STEP: f32 = 1.25;
+/// Least lead of an answer over its own pose at other scales ([`SCALE_STEP`]) for it to stand
+/// out.
+pub const STAND_OUT_OWN_MARGIN: f32 = 0.1;
+
+/// The best score of `pose`'s place at a quarter more or less along either axis or both: how
+/// well the template also fits there stretched. Why: a template whose pattern repeats along
+/// one axis (stripes, grain) fits a stretched pose as well as the right one, and such places
+/// line up along the pattern, all above the rest of the image together; their scales are
+/// undetermined and the answers no more than the image's texture.
+fn ambiguous_scales(verifier: &Verifier, pose: &Pose) -> f32 {
+    let (up, down) = (SCALE_STEP, 1.0 / SCALE_STEP);
+    [
+        (up, 1.0),
+        (down, 1.0),
+        (1.0, up),
+        (1.0, down),
+        (up, up),
+        (down, down),
+    ]
+    .into_iter()
+    .map(|(fx, fy)| {
+        let stretched = Pose {
+            scale_x: pose.scale_x * fx,
+            scale_y: pose.scale_y * fy,
+            ..*pose
+        };
+        verifier.score_at(&stretched, verifier.similarity(&stretched))
+    })
+    .fold(0.0, f32::max)
+}
 
 /// Raises the answers that stand out from every other place the search scored in the same
 /// image to [`STAND_OUT_SCORE`] (docs/accuracy.md, "What a score means": standing out). Why:
@@ -915,7 +951,16 @@ const SAME_PLACE_IOU: f32 = 0.1;
 /// heatmap gate (0.2, margin 0.3) the tuning set found fewer parts (jpeg-30 88.5 %, defocus-2
 /// 90.5 %, against 90.5 / 91.0 % at margin 0.4 without it) with as many answers without the
 /// part (40 / 38 / 40).
-fn lift_standing_out(answers: &mut [Pose], ranked: &[(f32, Pose)], (tw, th): (f32, f32)) {
+///
+/// An answer stands out only where its own pose does too: `stretched` gives the best score of
+/// its place at other scales ([`ambiguous_scales`]), which must lie [`STAND_OUT_OWN_MARGIN`]
+/// below its own.
+fn lift_standing_out(
+    answers: &mut [Pose],
+    ranked: &[(f32, Pose)],
+    (tw, th): (f32, f32),
+    stretched: impl Fn(&Pose) -> f32,
+) {
     if ranked.is_empty() {
         return;
     }
@@ -938,8 +983,11 @@ fn lift_standing_out(answers: &mut [Pose], ranked: &[(f32, Pose)], (tw, th): (f3
         return;
     };
     for answer in answers {
-        if answer.score >= lowest_standing_out {
-            answer.score = answer.score.max(STAND_OUT_SCORE);
+        if answer.score >= lowest_standing_out
+            && answer.score < STAND_OUT_SCORE
+            && answer.score - stretched(answer) >= STAND_OUT_OWN_MARGIN
+        {
+            answer.score = STAND_OUT_SCORE;
         }
     }
 }
@@ -1165,7 +1213,9 @@ fn verify_template(
             },
         )
         .collect();
-    lift_standing_out(&mut confirmed, &ranked, (tw, th));
+    lift_standing_out(&mut confirmed, &ranked, (tw, th), |answer| {
+        ambiguous_scales(&verifier, answer)
+    });
     let poses = select(confirmed, options, tw, th);
     Verification {
         poses,
@@ -1254,25 +1304,39 @@ mod tests {
         let mut ranked = decoys(&[0.31, 0.25, 0.2]);
         // The answer's own screen is the same place, not a decoy.
         ranked.push((0.7, Pose::upright(101.0, 1.0, 0.7)));
-        lift_standing_out(&mut answers, &ranked, SIZE);
+        lift_standing_out(&mut answers, &ranked, SIZE, |_| 0.0);
         assert_eq!(answers[0].score, STAND_OUT_SCORE);
+        assert!(
+            f64::from(answers[0].score) >= 0.9,
+            "passes min_score 0.9 as a double"
+        );
         // An answer above the default level keeps its own score.
         let mut answers = vec![Pose::upright(100.0, 0.0, 0.97)];
-        lift_standing_out(&mut answers, &ranked, SIZE);
+        lift_standing_out(&mut answers, &ranked, SIZE, |_| 0.0);
         assert_eq!(answers[0].score, 0.97);
+    }
+
+    #[test]
+    fn an_answer_that_fits_as_well_stretched_does_not_stand_out() {
+        let ranked = decoys(&[0.31, 0.25, 0.2]);
+        let mut answers = vec![Pose::upright(100.0, 0.0, 0.72)];
+        lift_standing_out(&mut answers, &ranked, SIZE, |_| 0.7);
+        assert_eq!(answers[0].score, 0.72);
+        lift_standing_out(&mut answers, &ranked, SIZE, |_| 0.72 - STAND_OUT_OWN_MARGIN);
+        assert_eq!(answers[0].score, STAND_OUT_SCORE);
     }
 
     #[test]
     fn an_answer_with_a_decoy_within_the_margin_is_not_lifted() {
         let mut answers = vec![Pose::upright(100.0, 0.0, 0.72)];
-        lift_standing_out(&mut answers, &decoys(&[0.35, 0.3, 0.2]), SIZE);
+        lift_standing_out(&mut answers, &decoys(&[0.35, 0.3, 0.2]), SIZE, |_| 0.0);
         assert_eq!(answers[0].score, 0.72);
     }
 
     #[test]
     fn an_answer_below_the_floor_is_not_lifted() {
         let mut answers = vec![Pose::upright(0.0, 0.0, STAND_OUT_FLOOR - 0.02)];
-        lift_standing_out(&mut answers, &decoys(&[0.1, 0.05]), SIZE);
+        lift_standing_out(&mut answers, &decoys(&[0.1, 0.05]), SIZE, |_| 0.0);
         assert_eq!(answers[0].score, STAND_OUT_FLOOR - 0.02);
     }
 
@@ -1283,7 +1347,7 @@ mod tests {
             Pose::upright(100.0, 0.0, 0.76),
             Pose::upright(200.0, 0.0, 0.3),
         ];
-        lift_standing_out(&mut answers, &decoys(&[0.3, 0.25, 0.2]), SIZE);
+        lift_standing_out(&mut answers, &decoys(&[0.3, 0.25, 0.2]), SIZE, |_| 0.0);
         let scores: Vec<f32> = answers.iter().map(|a| a.score).collect();
         assert_eq!(scores, [STAND_OUT_SCORE, STAND_OUT_SCORE, 0.3]);
     }
@@ -1295,6 +1359,7 @@ mod tests {
             &mut answers,
             &[(0.78, Pose::upright(100.0, 0.0, 0.78))],
             SIZE,
+            |_| 0.0,
         );
         assert_eq!(answers[0].score, 0.8);
     }
