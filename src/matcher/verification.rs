@@ -899,7 +899,7 @@ pub const STAND_OUT_SCORE: f32 = f32::from_bits(0.9f32.to_bits() + 1);
 /// Boxes overlapping by more than this (IoU) are one place.
 const SAME_PLACE_IOU: f32 = 0.1;
 /// Factor by which an answer's scales are changed, one axis or both, to ask whether its own
-/// pose stands out ([`ambiguous_scales`]).
+/// pose stands out ([`best_stretched_score`]).
 const SCALE_STEP: f32 = 1.25;
 /// Least lead of an answer over its own pose at other scales ([`SCALE_STEP`]) for it to stand
 /// out.
@@ -910,7 +910,7 @@ pub const STAND_OUT_OWN_MARGIN: f32 = 0.1;
 /// one axis (stripes, grain) fits a stretched pose as well as the right one, and such places
 /// line up along the pattern, all above the rest of the image together; their scales are
 /// undetermined and the answers no more than the image's texture.
-fn ambiguous_scales(verifier: &Verifier, pose: &Pose) -> f32 {
+fn best_stretched_score(verifier: &Verifier, pose: &Pose) -> f32 {
     let (up, down) = (SCALE_STEP, 1.0 / SCALE_STEP);
     [
         (up, 1.0),
@@ -953,7 +953,7 @@ fn ambiguous_scales(verifier: &Verifier, pose: &Pose) -> f32 {
 /// part (40 / 38 / 40).
 ///
 /// An answer stands out only where its own pose does too: `stretched` gives the best score of
-/// its place at other scales ([`ambiguous_scales`]), which must lie [`STAND_OUT_OWN_MARGIN`]
+/// its place at other scales ([`best_stretched_score`]), which must lie [`STAND_OUT_OWN_MARGIN`]
 /// below its own.
 fn lift_standing_out(
     answers: &mut [Pose],
@@ -1214,7 +1214,7 @@ fn verify_template(
         )
         .collect();
     lift_standing_out(&mut confirmed, &ranked, (tw, th), |answer| {
-        ambiguous_scales(&verifier, answer)
+        best_stretched_score(&verifier, answer)
     });
     let poses = select(confirmed, options, tw, th);
     Verification {
