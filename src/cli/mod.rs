@@ -104,7 +104,7 @@ pub struct VerificationArgs {
     /// per --max-instances, 6 where the weights' heads are not trusted, at least 100).
     #[arg(long, default_value_t = 0)]
     pub max_candidates: usize,
-    /// Do not search the image classically (at the template's expected scale) when none of
+    /// Do not search the image classically (around the template's expected scale) when none of
     /// the network's candidates verifies at --min-score; by default that search runs where it
     /// costs less than about 65 ms (e.g. up to about 650x650 pixels for a 36x36 template).
     #[arg(long)]
