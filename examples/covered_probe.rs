@@ -59,7 +59,7 @@ fn main() {
         let image = GrayImage32::from_rgb(&pair.search);
         let whole = Verifier::for_options(&encoded.gray, &image, &options);
         let oracle_whole = whole.confirm(&whole.screen(&truth), &truth);
-        let mut oracle = whole.score_at(&oracle_whole.pose, whole.similarity(&oracle_whole.pose));
+        let mut oracle = whole.score_at(&oracle_whole.pose);
         let mut oracle_pose = oracle_whole.pose;
         if let Some(q) = quadrant {
             let mut partial = encoded.gray.as_ref().clone();
@@ -71,7 +71,7 @@ fn main() {
             }
             let pv = Verifier::for_options(&partial, &image, &options);
             let c = pv.confirm(&pv.screen(&truth), &truth);
-            let s = whole.score_at(&c.pose, whole.similarity(&c.pose));
+            let s = whole.score_at(&c.pose);
             if s > oracle {
                 oracle = s;
                 oracle_pose = c.pose;
@@ -95,15 +95,12 @@ fn main() {
             "nothing answered; truth reaches min_score"
         };
         *tally.entry(kind.to_string()).or_default() += 1;
-        let vis = whole
-            .readings_at(&oracle_pose, whole.similarity(&oracle_pose))
-            .into_iter()
-            .find(|r| {
-                matches!(
-                    r.kind,
-                    posematch::matcher::verification::ReadingKind::Visible
-                )
-            });
+        let vis = whole.readings_at(&oracle_pose).into_iter().find(|r| {
+            matches!(
+                r.kind,
+                posematch::matcher::verification::ReadingKind::Visible
+            )
+        });
         if let Some(r) = vis {
             println!(
                 "      visible: share {:.3} sim {:.3} chance {:.3} -> {:.3}  [{kind}]",

@@ -43,12 +43,12 @@ fn print_readings(index: u64, verifier: &Verifier, pose: &Pose, template: &GrayI
     let chance = posematch::matcher::verification::chance_similarity(template);
     println!(
         "#{index:4} right, score {:.3}, template chance {chance:.3}, angle {:.0} s {:.2}/{:.2}",
-        verifier.score_at(pose, verifier.similarity(pose)),
+        verifier.score_at(pose),
         pose.angle_deg,
         pose.scale_x,
         pose.scale_y,
     );
-    for reading in verifier.readings_at(pose, verifier.similarity(pose)) {
+    for reading in verifier.readings_at(pose) {
         println!(
             "        {:50} similarity {:.3} chance {:.3} share {:.2} -> {:.3}",
             format!("{:?}", reading.kind),
@@ -131,12 +131,7 @@ fn main() {
         let ranked = screened.len().min(2 + RANKED_BEYOND_SURVIVORS);
         let mut head: Vec<(f32, _)> = screened
             .drain(..ranked)
-            .map(|s| {
-                (
-                    verifier.score_at(&s.2.pose, verifier.similarity(&s.2.pose)),
-                    s,
-                )
-            })
+            .map(|s| (verifier.score_at(&s.2.pose), s))
             .collect();
         head.sort_by(|a, b| b.0.total_cmp(&a.0));
         screened.splice(0..0, head.into_iter().map(|(_, s)| s));

@@ -450,7 +450,7 @@ impl<'a> Verifier<'a> {
             chance: chance_similarity(template),
             independent: independent_pixels(template),
             coverage: Coverage::new(template),
-            sharpness: Sharpness::new(template, chance_of_reading),
+            sharpness: Sharpness::new(template, image, chance_of_reading),
             ranks: RankPoints::new(template),
             rank_chance: chance_of_reading(template),
             shading: ShadingPoints::new(template),
@@ -510,8 +510,7 @@ impl<'a> Verifier<'a> {
         above_chance(similarity, self.chance)
     }
 
-    /// The score of the template at `pose`, whose whole-template similarity is `similarity`:
-    /// the best of three kinds of reading (docs/accuracy.md, "What a score means"):
+    /// The score of the template at `pose`: the best of three kinds of reading (docs/accuracy.md, "What a score means"):
     /// - the whole template's similarity above chance ([`Verifier::score`]);
     /// - the template at the image's sharpness: blurred as a defocused camera blurs the part,
     ///   or blurred together with the image where noise would drown its detail, each above the
@@ -528,8 +527,8 @@ impl<'a> Verifier<'a> {
     /// differently exposed one scores about what a clean one would; a part with a quarter covered scores about 0.75 instead
     /// of collapsing with the whole-template correlation; an unrelated patch has few matching
     /// cells, and a blurred template's higher chance level takes back what the blur gave it.
-    pub fn score_at(&self, pose: &Pose, similarity: f32) -> f32 {
-        self.readings_at(pose, similarity)
+    pub fn score_at(&self, pose: &Pose) -> f32 {
+        self.readings_at(pose)
             .iter()
             .map(Reading::score)
             .fold(0.0, f32::max)
@@ -537,26 +536,32 @@ impl<'a> Verifier<'a> {
 
     /// Every reading [`Verifier::score_at`] takes the best of, each with its similarity and
     /// chance level: what a score was made of, for diagnosis (`examples/diagnose`).
-    pub fn readings_at(&self, pose: &Pose, similarity: f32) -> Vec<Reading> {
+    pub fn readings_at(&self, pose: &Pose) -> Vec<Reading> {
+        // Every reading compares its own template values with the same image samples.
+        let samples = self.support.samples(self.image, pose);
         let mut readings = vec![
-            Reading::whole(ReadingKind::Whole, similarity, self.chance),
+            Reading::whole(
+                ReadingKind::Whole,
+                samples.zncc(self.support.weights()),
+                self.chance,
+            ),
             Reading::whole(
                 ReadingKind::Rank,
-                self.ranks.similarity(self.image, pose),
+                self.ranks.similarity(&samples),
                 self.rank_chance,
             ),
         ];
         if let Some(chance) = self.shading_chance {
             readings.push(Reading::whole(
                 ReadingKind::Shading,
-                self.shading.similarity(self.image, pose),
+                self.shading.similarity(&samples),
                 chance,
             ));
         }
         if let Some(reading) = self
             .denoised
             .as_ref()
-            .and_then(|(points, noise)| points.read(self.image, pose, *noise))
+            .and_then(|(points, noise)| points.read(&samples, self.image, pose, *noise))
         {
             let chance =
                 (self.chance.powi(2) + CHANCE_LOG_HYPOTHESES * reading.noise_spread).sqrt();
@@ -568,7 +573,7 @@ impl<'a> Verifier<'a> {
         }
         readings.extend(
             self.sharpness
-                .read(self.image, pose)
+                .read(&samples, pose)
                 .into_iter()
                 .map(|reading| {
                     let (defocus, smoothing) = reading.blur;
@@ -579,7 +584,7 @@ impl<'a> Verifier<'a> {
                     )
                 }),
         );
-        if let Some(reading) = self.coverage.measure(self.image, pose) {
+        if let Some(reading) = self.coverage.measure(&samples) {
             readings.push(Reading {
                 kind: ReadingKind::Visible,
                 similarity: reading.visible_similarity,
@@ -790,7 +795,7 @@ impl<'a> Verifier<'a> {
             },
             similarity,
             score: if similarity > -1.0 {
-                self.score_at(&pose, similarity)
+                self.score_at(&pose)
             } else {
                 0.0
             },
@@ -861,7 +866,7 @@ fn rank_by_score(
         .into_par_iter()
         .map(|(candidate, screen)| {
             let score = if screen.score >= SCREEN_MIN && limit.in_time() {
-                verifier.score_at(&screen.pose, verifier.similarity(&screen.pose))
+                verifier.score_at(&screen.pose)
             } else {
                 -1.0
             };
@@ -927,7 +932,7 @@ fn best_stretched_score(verifier: &Verifier, pose: &Pose) -> f32 {
             scale_y: pose.scale_y * fy,
             ..*pose
         };
-        verifier.score_at(&stretched, verifier.similarity(&stretched))
+        verifier.score_at(&stretched)
     })
     .fold(0.0, f32::max)
 }
@@ -1126,7 +1131,7 @@ pub fn verify_partial(
         answer_by,
     );
     for pose in &mut found.poses {
-        pose.score = whole.score_at(pose, whole.similarity(pose));
+        pose.score = whole.score_at(pose);
     }
     found.poses = select(found.poses, options, size.0, size.1);
     found

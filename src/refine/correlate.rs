@@ -73,6 +73,23 @@ impl PointLanes {
         self.sums_at(image, &Affine::of(pose, 0.0, 0.0))
     }
 
+    /// The image (bilinear, coordinates clamped) where `pose` maps each real point, in the
+    /// points' order, written over `out`.
+    pub(super) fn samples(&self, image: &GrayImage32, pose: &Pose, out: &mut Vec<f32>) {
+        assert_eq!(
+            image.values.len(),
+            image.width * image.height,
+            "image values match its size"
+        );
+        out.clear();
+        if self.count == 0 || image.values.is_empty() {
+            return;
+        }
+        out.resize(self.us.len(), 0.0);
+        lane_samples(&self.us, &self.vs, image, &Affine::of(pose, 0.0, 0.0), out);
+        out.truncate(self.count);
+    }
+
     /// [`Sums`] of these points in `image` where `map` puts them.
     pub(super) fn sums_at(&self, image: &GrayImage32, map: &Affine) -> Sums {
         assert_eq!(
@@ -156,6 +173,22 @@ fn lane_sums(us: &[f32], vs: &[f32], weights: &[f32], image: &GrayImage32, map: 
         sum: sum.iter().sum(),
         sum_sq: sum_sq.iter().sum(),
         dot: dot.iter().sum(),
+    }
+}
+
+#[multiversion(targets("x86_64+avx512f+avx512vl+avx512bw+avx512dq", "x86_64+avx2+fma"))]
+fn lane_samples(us: &[f32], vs: &[f32], image: &GrayImage32, map: &Affine, out: &mut [f32]) {
+    let (values, width, height) = (&image.values[..], image.width, image.height);
+    for ((u, v), out) in us
+        .chunks_exact(LANES)
+        .zip(vs.chunks_exact(LANES))
+        .zip(out.chunks_exact_mut(LANES))
+    {
+        for lane in 0..LANES {
+            let (x, y) = map.apply(u[lane], v[lane]);
+            // SAFETY: the caller checked `values.len() == width * height`.
+            out[lane] = unsafe { BilinearTap::new(width, height, x, y).apply_unchecked(values) };
+        }
     }
 }
 

@@ -11,8 +11,7 @@
 //! turns both into one score (`matcher/verification.rs`, docs/accuracy.md "What a score
 //! means").
 
-use super::correlate::{Affine, PointLanes};
-use crate::geometry::Pose;
+use super::PoseSamples;
 use crate::imaging::GrayImage32;
 
 /// Cells per side of the template.
@@ -70,7 +69,10 @@ impl CellSums {
 }
 
 struct Cell {
-    lanes: PointLanes,
+    /// Its points: indices into the support's points (and so into a pose's samples), with
+    /// their template values centred on the whole template's mean.
+    indices: Vec<usize>,
+    values: Vec<f32>,
     /// Σ t and Σ t² of its template values.
     t: f64,
     tt: f64,
@@ -79,7 +81,7 @@ struct Cell {
     weight: f32,
 }
 
-/// The template's support points in [`CELLS_PER_SIDE`]² cells.
+/// The template's support points (in the support's order) in [`CELLS_PER_SIDE`]² cells.
 pub(crate) struct Coverage {
     cells: Vec<Cell>,
     total_weight: f32,
@@ -125,26 +127,27 @@ impl Coverage {
             let row = ((v + cy + 0.5) / template.height as f32 * CELLS_PER_SIDE as f32) as usize;
             row.min(CELLS_PER_SIDE - 1) * CELLS_PER_SIDE + col.min(CELLS_PER_SIDE - 1)
         };
-        // Each cell's offsets and centred values.
-        let mut offsets_of = vec![Vec::new(); CELLS_PER_SIDE * CELLS_PER_SIDE];
+        // Each cell's points and centred values.
+        let mut indices_of = vec![Vec::new(); CELLS_PER_SIDE * CELLS_PER_SIDE];
         let mut values_of: Vec<Vec<f32>> = vec![Vec::new(); CELLS_PER_SIDE * CELLS_PER_SIDE];
-        for (&offset, &value) in offsets.iter().zip(&values) {
+        for (index, (&offset, &value)) in offsets.iter().zip(&values).enumerate() {
             let cell = cell_of(offset);
-            offsets_of[cell].push(offset);
+            indices_of[cell].push(index);
             values_of[cell].push(value - mean);
         }
-        let cells: Vec<Cell> = offsets_of
+        let cells: Vec<Cell> = indices_of
             .into_iter()
             .zip(values_of)
-            .filter(|(offsets, _)| !offsets.is_empty())
-            .map(|(offsets, values)| {
+            .filter(|(indices, _)| !indices.is_empty())
+            .map(|(indices, values)| {
                 let n = values.len() as f64;
                 let t: f64 = values.iter().map(|&v| f64::from(v)).sum();
                 let tt: f64 = values.iter().map(|&v| f64::from(v).powi(2)).sum();
                 let spread_sq = (tt - t * t / n).max(0.0);
                 let flat = spread_sq / n < f64::from(FLAT_CELL_SPREAD).powi(2);
                 Cell {
-                    lanes: PointLanes::new(&offsets, &values),
+                    indices,
+                    values,
                     t,
                     tt,
                     weight: if flat { 0.0 } else { n as f32 },
@@ -158,30 +161,38 @@ impl Coverage {
         }
     }
 
-    fn sums(&self, cell: &Cell, image: &GrayImage32, pose: &Pose) -> CellSums {
-        let s = cell.lanes.sums_at(image, &Affine::of(pose, 0.0, 0.0));
-        let (n, r) = (cell.lanes.len() as f64, f64::from(s.reference));
+    fn sums(cell: &Cell, samples: &[f32]) -> CellSums {
+        let (mut i, mut ii, mut ti) = (0f64, 0f64, 0f64);
+        for (&index, &t) in cell.indices.iter().zip(&cell.values) {
+            let sample = f64::from(samples[index]);
+            i += sample;
+            ii += sample * sample;
+            ti += f64::from(t) * sample;
+        }
         CellSums {
-            n,
+            n: cell.indices.len() as f64,
             t: cell.t,
             tt: cell.tt,
-            i: s.sum + n * r,
-            ii: s.sum_sq + 2.0 * r * s.sum + n * r * r,
-            ti: s.dot + r * cell.t,
+            i,
+            ii,
+            ti,
         }
     }
 
-    /// The template's cells at `pose` in `image`. `None` for a template without structure
-    /// in any cell (nothing to tell a covered cell from a visible one).
-    pub(crate) fn measure(&self, image: &GrayImage32, pose: &Pose) -> Option<CoverageReading> {
+    /// The template's cells in the image's `samples` at a pose (the support's). `None` for a
+    /// template without structure in any cell (nothing to tell a covered cell from a visible
+    /// one).
+    pub(crate) fn measure(&self, samples: &PoseSamples) -> Option<CoverageReading> {
         if self.total_weight <= 0.0 || self.points == 0 {
             return None;
         }
+        let samples = samples.values();
+        debug_assert_eq!(samples.len(), self.points, "the support's samples");
         let mut visible = 0.0f32;
         let mut together = CellSums::default();
         let mut cells_similarity = 0.0f64;
         for cell in &self.cells {
-            let sums = self.sums(cell, image, pose);
+            let sums = Self::sums(cell, samples);
             let matches = if cell.weight > 0.0 {
                 ((sums.zncc() - CELL_UNRELATED) / (CELL_MATCHES - CELL_UNRELATED)).clamp(0.0, 1.0)
             } else {
@@ -208,7 +219,8 @@ impl Coverage {
 #[cfg(test)]
 mod tests {
     use super::*;
-    use crate::refine::textured;
+    use crate::geometry::Pose;
+    use crate::refine::{TemplatePoints, textured};
 
     fn at(x: f32, y: f32) -> Pose {
         Pose {
@@ -220,6 +232,16 @@ mod tests {
             score: 0.0,
             network_score: 0.0,
         }
+    }
+
+    /// The template's coverage at `pose` in `image`.
+    fn measure(
+        template: &GrayImage32,
+        image: &GrayImage32,
+        pose: &Pose,
+    ) -> Option<CoverageReading> {
+        let samples = TemplatePoints::support(template).samples(image, pose);
+        Coverage::new(template).measure(&samples)
     }
 
     /// The template pasted into a textured image at (40, 30) with its top-left corner.
@@ -244,15 +266,14 @@ mod tests {
     fn a_visible_part_is_wholly_visible_and_a_covered_quarter_is_missing() {
         let template = textured(36, 36, 1);
         let pose = at(40.0 + 17.5, 30.0 + 17.5);
-        let coverage = Coverage::new(&template);
         let clean_scene = scene(&template, false);
-        let whole = crate::refine::TemplatePoints::support(&template).score(&clean_scene, &pose);
+        let whole = TemplatePoints::support(&template).score(&clean_scene, &pose);
         assert!(whole > 0.999, "whole-template ZNCC {whole}");
-        let clean = coverage.measure(&clean_scene, &pose).unwrap();
+        let clean = measure(&template, &clean_scene, &pose).unwrap();
         assert!(clean.visible > 0.999, "{clean:?}");
         assert!(clean.visible_similarity > 0.999, "{clean:?}");
         assert!((clean.visible_points - 1.0).abs() < 1e-6, "{clean:?}");
-        let covered = coverage.measure(&scene(&template, true), &pose).unwrap();
+        let covered = measure(&template, &scene(&template, true), &pose).unwrap();
         assert!((0.7..0.82).contains(&covered.visible), "{covered:?}");
         assert!(covered.visible_similarity > 0.999, "{covered:?}");
         assert!((covered.visible_points - 0.75).abs() < 0.07, "{covered:?}");
@@ -268,9 +289,7 @@ mod tests {
             0.5 + if x >= 18 && y >= 18 { v } else { v / 4.0 }
         });
         let pose = at(40.0 + 17.5, 30.0 + 17.5);
-        let covered = Coverage::new(&template)
-            .measure(&scene(&template, true), &pose)
-            .unwrap();
+        let covered = measure(&template, &scene(&template, true), &pose).unwrap();
         assert!((covered.visible - 0.75).abs() < 0.05, "{covered:?}");
     }
 
@@ -278,15 +297,14 @@ mod tests {
     fn light_falling_across_the_part_leaves_every_cell_matching() {
         let template = textured(36, 36, 1);
         let pose = at(40.0 + 17.5, 30.0 + 17.5);
-        let coverage = Coverage::new(&template);
         let clean = scene(&template, false);
         // Gain 1.3 at the part's left edge, 0.4 at its right, as a lamp on one side.
         let lit = GrayImage32::from_fn(120, 100, |x, y| {
             let gain = 1.3 - 0.9 * ((x as f32 - 40.0) / 35.0).clamp(0.0, 1.0);
             clean.values[y * 120 + x] * gain
         });
-        let whole = crate::refine::TemplatePoints::support(&template).score(&lit, &pose);
-        let reading = coverage.measure(&lit, &pose).unwrap();
+        let whole = TemplatePoints::support(&template).score(&lit, &pose);
+        let reading = measure(&template, &lit, &pose).unwrap();
         assert!(reading.visible > 0.999, "{reading:?}");
         assert!(reading.visible_similarity > 0.95, "{reading:?}");
         assert!(
@@ -298,19 +316,14 @@ mod tests {
     #[test]
     fn an_unrelated_patch_is_mostly_not_visible() {
         let template = textured(36, 36, 1);
-        let coverage = Coverage::new(&template);
         let elsewhere = textured(120, 100, 99);
-        let reading = coverage.measure(&elsewhere, &at(60.0, 50.0)).unwrap();
+        let reading = measure(&template, &elsewhere, &at(60.0, 50.0)).unwrap();
         assert!(reading.visible < 0.3, "{reading:?}");
     }
 
     #[test]
     fn a_flat_template_has_no_coverage() {
         let flat = GrayImage32::from_fn(20, 20, |_, _| 0.5);
-        assert!(
-            Coverage::new(&flat)
-                .measure(&textured(50, 50, 3), &at(25.0, 25.0))
-                .is_none()
-        );
+        assert!(measure(&flat, &textured(50, 50, 3), &at(25.0, 25.0)).is_none());
     }
 }

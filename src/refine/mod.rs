@@ -86,19 +86,6 @@ fn grid_points(template: &GrayImage32, max_side: usize) -> (Vec<(f32, f32)>, Vec
     (offsets, values)
 }
 
-/// The image (bilinear) where `pose` maps each template offset: the samples a reading compares
-/// with its template points.
-fn samples_at<'a>(
-    image: &'a GrayImage32,
-    pose: &'a Pose,
-    offsets: &'a [(f32, f32)],
-) -> impl Iterator<Item = f32> + 'a {
-    offsets.iter().map(|&(u, v)| {
-        let (x, y) = pose.map_point(u, v);
-        image.sample(x, y)
-    })
-}
-
 /// `(offsets, values)` without the few points farthest from the template centre that would
 /// start a last, mostly empty lane of [`correlate::LANES`] (at most a quarter of a lane): the
 /// sampling costs the same per lane however many of its points are real, and the screen
@@ -167,6 +154,19 @@ impl TemplatePoints {
         Self::new(template, 48)
     }
 
+    /// The image where `pose` maps each point, in the points' order: what the readings of a
+    /// pose compare with their own template values ([`PoseSamples`]).
+    pub(crate) fn samples(&self, image: &GrayImage32, pose: &Pose) -> PoseSamples {
+        let mut values = Vec::new();
+        self.lanes.samples(image, pose, &mut values);
+        PoseSamples { values }
+    }
+
+    /// The points' zero-mean, unit-norm weights, in the points' order.
+    pub(crate) fn weights(&self) -> &[f32] {
+        &self.lanes.weights[..self.lanes.len()]
+    }
+
     /// ZNCC of the template against the image under `pose`, in [-1, 1].
     pub(crate) fn score(&self, image: &GrayImage32, pose: &Pose) -> f32 {
         let sums = self.lanes.sums(image, pose);
@@ -176,6 +176,43 @@ impl TemplatePoints {
             sums.sum_sq as f32,
             self.lanes.len(),
         )
+    }
+}
+
+/// The image where a pose maps each of a template's support points ([`grid_points`] up to 48
+/// a side, the order of [`TemplatePoints::support`]), sampled once.
+///
+/// Why: a pose's score is the best of several readings (`matcher/verification.rs`,
+/// `Verifier::readings_at`): the rank correlation, the shading, the denoised and the blurred
+/// templates, the cells' coverage. Each compares its own template values with the same image
+/// samples; sampled by each reading anew they were most of the cost of scoring a pose, which
+/// the verifier does some fifty times a pair.
+pub(crate) struct PoseSamples {
+    values: Vec<f32>,
+}
+
+impl PoseSamples {
+    /// The samples, one per support point.
+    pub(crate) fn values(&self) -> &[f32] {
+        &self.values
+    }
+
+    /// ZNCC of zero-mean, unit-norm `weights` (one per sample, in order) with the samples, in
+    /// [-1, 1] ([`zncc`]: a flat patch scores -1).
+    pub(crate) fn zncc(&self, weights: &[f32]) -> f32 {
+        debug_assert_eq!(weights.len(), self.values.len(), "one weight per sample");
+        let Some(&reference) = self.values.first() else {
+            return -1.0;
+        };
+        // Relative to the first sample, as the lanes' sums are (`correlate::Sums`).
+        let (mut sum, mut sum_sq, mut dot) = (0f64, 0f64, 0f64);
+        for (&sample, &weight) in self.values.iter().zip(weights) {
+            let value = f64::from(sample - reference);
+            sum += value;
+            sum_sq += value * value;
+            dot += f64::from(weight) * value;
+        }
+        zncc(dot as f32, sum as f32, sum_sq as f32, self.values.len())
     }
 }
 

@@ -17,6 +17,7 @@
 //! is bounded ([`MAX_NOISE_GAIN`]): where the noise is most of a patch's variance the
 //! difference of the two is itself mostly noise.
 
+use super::PoseSamples;
 use crate::geometry::Pose;
 use crate::imaging::GrayImage32;
 
@@ -93,24 +94,28 @@ impl NoisePoints {
         }
     }
 
-    /// The template and the image at `pose` with the image's `noise` taken out of the
-    /// samples' variance ([`DenoisedReading`]); `None` where the image is flat there.
+    /// The template and the image's `samples` at `pose` (the support's, in `image`) with the
+    /// image's `noise` taken out of the samples' variance ([`DenoisedReading`]); `None` where
+    /// the image is flat there.
     pub(crate) fn read(
         &self,
+        samples: &PoseSamples,
         image: &GrayImage32,
         pose: &Pose,
         noise: NoiseLevel,
     ) -> Option<DenoisedReading> {
         let n = self.offsets.len();
+        debug_assert_eq!(samples.values().len(), n, "the support's samples");
         if n < 2 {
             return None;
         }
         let (mut sum, mut sum_sq, mut dot, mut noise_share, mut inside) =
             (0f64, 0f64, 0f64, 0f64, 0usize);
         let (max_x, max_y) = ((image.width - 1) as f32, (image.height - 1) as f32);
-        for (&(u, v), &w) in self.offsets.iter().zip(&self.weights) {
+        for ((&(u, v), &w), &sample) in self.offsets.iter().zip(&self.weights).zip(samples.values())
+        {
             let (x, y) = pose.map_point(u, v);
-            let value = image.sample(x, y) as f64;
+            let value = f64::from(sample);
             sum += value;
             sum_sq += value * value;
             dot += w as f64 * value;
@@ -206,23 +211,25 @@ mod tests {
         let noisy = with_noise(&template, 0.04);
         let noise = NoiseLevel::estimate(&with_noise(&smooth(200, 160, 0.12), 0.04));
         let pose = at_centre(&template);
-        let zncc = TemplatePoints::support(&template).score(&noisy, &pose);
+        let support = TemplatePoints::support(&template);
         let points = NoisePoints::new(&template);
-        let corrected = points.read(&noisy, &pose, noise).unwrap().similarity;
+        let read = |image: &GrayImage32, noise| {
+            points.read(&support.samples(image, &pose), image, &pose, noise)
+        };
+        let zncc = support.score(&noisy, &pose);
+        let corrected = read(&noisy, noise).unwrap().similarity;
         assert!(zncc < 0.85, "ZNCC {zncc}");
         assert!(corrected > 0.95, "corrected {corrected} (ZNCC {zncc})");
         // Without noise in the image, nothing changes.
-        let clean = points
-            .read(&template, &pose, NoiseLevel { variance: 0.0 })
-            .unwrap();
+        let clean = read(&template, NoiseLevel { variance: 0.0 }).unwrap();
         assert!(clean.similarity > 0.999 && clean.noise_spread == 0.0);
         // An unrelated patch under the same noise gains at most MAX_NOISE_GAIN.
         let other = with_noise(&textured(36, 36, 7), 0.04);
-        let unrelated = points.read(&other, &pose, noise).unwrap().similarity;
-        let plain = TemplatePoints::support(&template).score(&other, &pose);
+        let unrelated = read(&other, noise).unwrap().similarity;
+        let plain = support.score(&other, &pose);
         assert!(unrelated.abs() <= plain.abs() * MAX_NOISE_GAIN + 1e-4);
         assert!(unrelated.abs() < 0.2, "{unrelated}");
         let flat = GrayImage32::from_fn(36, 36, |_, _| 0.5);
-        assert_eq!(points.read(&flat, &pose, noise), None);
+        assert_eq!(read(&flat, noise), None);
     }
 }

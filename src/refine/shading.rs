@@ -14,7 +14,7 @@
 //! and reads as no match. Three free gains instead of one fit an unrelated patch a little
 //! better, so the reading has its own, higher chance level (`matcher/verification.rs`).
 
-use crate::geometry::Pose;
+use super::PoseSamples;
 use crate::imaging::GrayImage32;
 
 /// Largest ratio of the gain at one corner of the part to the gain at another. The light of
@@ -22,11 +22,10 @@ use crate::imaging::GrayImage32;
 /// fifth of the frame across by at most 1.5x.
 const MAX_GAIN_RATIO: f64 = 3.0;
 
-/// The template's support points (every pixel up to 48 a side, as the similarity's) with an
-/// orthonormal basis of the offset plane `[1, u, v]` and of the gain plane times the template
+/// Over the template's support points (every pixel up to 48 a side, as the similarity's, in
+/// its order): an orthonormal basis of the offset plane `[1, u, v]` and of the gain plane times the template
 /// `[t, u·t, v·t]` beyond it.
 pub(crate) struct ShadingPoints {
-    offsets: Vec<(f32, f32)>,
     /// Orthonormal over the points: the offset plane's three vectors, then the gain plane's.
     basis: [Vec<f64>; 6],
     /// Per gain vector of `basis` (3..6): its coefficients on `t`, `u·t`, `v·t` (the offset
@@ -86,24 +85,26 @@ impl ShadingPoints {
             }
         }
         Self {
-            offsets,
             basis,
             gain_of,
             usable,
         }
     }
 
-    /// The correlation of the template with the image (bilinear samples) at `pose` under a
+    /// The correlation of the template with the image's `samples` at a pose (the support's) under a
     /// gain and an offset that vary linearly across the part, in [0, 1]; -1 where the image is
     /// flat there, the template has no detail, or the fitted gain is no light's
     /// ([`MAX_GAIN_RATIO`], a sign change: reversed contrast is `polarity`'s business).
-    pub(crate) fn similarity(&self, image: &GrayImage32, pose: &Pose) -> f32 {
+    pub(crate) fn similarity(&self, samples: &PoseSamples) -> f32 {
         if !self.usable {
             return -1.0;
         }
-        let samples: Vec<f64> = super::samples_at(image, pose, &self.offsets)
-            .map(f64::from)
-            .collect();
+        debug_assert_eq!(
+            samples.values().len(),
+            self.basis[0].len(),
+            "the support's samples"
+        );
+        let samples: Vec<f64> = samples.values().iter().map(|&v| f64::from(v)).collect();
         let energy = dot(&samples, &samples);
         let coefficients: Vec<f64> = self.basis.iter().map(|q| dot(&samples, q)).collect();
         let beyond_offset = energy - coefficients[..3].iter().map(|c| c * c).sum::<f64>();
@@ -139,7 +140,7 @@ fn dot(a: &[f64], b: &[f64]) -> f64 {
 #[cfg(test)]
 mod tests {
     use super::*;
-    use crate::refine::{at_centre, textured};
+    use crate::refine::{TemplatePoints, at_centre, textured};
 
     fn lit(template: &GrayImage32, light: impl Fn(f32, f32) -> f32) -> GrayImage32 {
         GrayImage32::from_fn(template.width, template.height, |x, y| {
@@ -151,13 +152,14 @@ mod tests {
     fn light_falling_across_the_part_keeps_the_shading_similarity_at_one() {
         let template = textured(36, 36, 3);
         let pose = at_centre(&template);
+        let support = TemplatePoints::support(&template);
         let points = ShadingPoints::new(&template);
         let falling = lit(&template, |x, y| 1.3 - 0.012 * x - 0.005 * y);
-        let similarity = points.similarity(&falling, &pose);
+        let similarity = points.similarity(&support.samples(&falling, &pose));
         assert!(similarity > 0.999, "{similarity}");
-        assert!(points.similarity(&template, &pose) > 0.999);
+        assert!(points.similarity(&support.samples(&template, &pose)) > 0.999);
         // ZNCC is not: the light costs it.
-        let zncc = super::super::TemplatePoints::support(&template).score(&falling, &pose);
+        let zncc = support.score(&falling, &pose);
         assert!(zncc < 0.99, "{zncc}");
     }
 
@@ -165,9 +167,11 @@ mod tests {
     fn unrelated_reversed_or_unlit_patches_do_not_match() {
         let template = textured(36, 36, 3);
         let pose = at_centre(&template);
+        let support = TemplatePoints::support(&template);
         let points = ShadingPoints::new(&template);
+        let similarity = |image: &GrayImage32| points.similarity(&support.samples(image, &pose));
         let other = textured(36, 36, 11);
-        let unrelated = points.similarity(&other, &pose);
+        let unrelated = similarity(&other);
         assert!(unrelated < 0.35, "{unrelated}");
         // Reversed contrast is a negative gain: no light's.
         let reversed = lit(&template, |_, _| 1.0);
@@ -175,11 +179,11 @@ mod tests {
             values: reversed.values.iter().map(|v| 1.0 - v).collect(),
             ..reversed
         };
-        assert_eq!(points.similarity(&reversed, &pose), -1.0);
+        assert_eq!(similarity(&reversed), -1.0);
         // A gain from 1 to 0 across the part is no light either.
         let dark_half = lit(&template, |x, _| (1.0 - x / 24.0).max(0.0));
-        assert_eq!(points.similarity(&dark_half, &pose), -1.0);
+        assert_eq!(similarity(&dark_half), -1.0);
         let flat = GrayImage32::from_fn(36, 36, |_, _| 0.5);
-        assert_eq!(points.similarity(&flat, &pose), -1.0);
+        assert_eq!(similarity(&flat), -1.0);
     }
 }
