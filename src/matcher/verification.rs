@@ -510,7 +510,8 @@ impl<'a> Verifier<'a> {
         above_chance(similarity, self.chance)
     }
 
-    /// The score of the template at `pose`: the best of three kinds of reading (docs/accuracy.md, "What a score means"):
+    /// The score of the template at `pose`: the best of three kinds of reading (docs/accuracy.md,
+    /// "What a score means"):
     /// - the whole template's similarity above chance ([`Verifier::score`]);
     /// - the template at the image's sharpness: blurred as a defocused camera blurs the part,
     ///   or blurred together with the image where noise would drown its detail, each above the

@@ -92,11 +92,8 @@ impl<'a> Sharpness<'a> {
     /// [`BLUR_STEPS_PER_OCTAVE`], made on first use.
     fn blurred(&self, sigma: f32) -> Arc<BlurredTemplate> {
         let step = (sigma.max(1e-3).log2() * BLUR_STEPS_PER_OCTAVE).round() as i32;
-        let made = |blurred: &Mutex<HashMap<i32, Arc<BlurredTemplate>>>| {
-            let blurred = blurred.lock().unwrap_or_else(PoisonError::into_inner);
-            blurred.get(&step).cloned()
-        };
-        if let Some(blurred) = made(&self.blurred) {
+        let made = self.made_blurred().get(&step).cloned();
+        if let Some(blurred) = made {
             return blurred;
         }
         // Made outside the lock: two threads may make the same step; the first one kept wins.
@@ -106,12 +103,13 @@ impl<'a> Sharpness<'a> {
             points: TemplatePoints::support(&template),
             chance: (self.chance)(&template),
         });
-        self.blurred
-            .lock()
-            .unwrap_or_else(PoisonError::into_inner)
-            .entry(step)
-            .or_insert(blurred)
-            .clone()
+        self.made_blurred().entry(step).or_insert(blurred).clone()
+    }
+
+    /// The blurred templates made so far, locked (a panic elsewhere leaves them usable: each
+    /// entry is inserted whole).
+    fn made_blurred(&self) -> std::sync::MutexGuard<'_, HashMap<i32, Arc<BlurredTemplate>>> {
+        self.blurred.lock().unwrap_or_else(PoisonError::into_inner)
     }
 
     /// Every reading of [`READINGS`] at `pose`, whose samples in the image (the template's
