@@ -199,8 +199,9 @@ pub struct MatchOptions {
     /// The network, or the classical NCC matcher.
     pub method: Method,
     /// With verification: when no candidate of the network verifies at `min_score`, search the
-    /// image with the classical matcher at the template's expected scale
-    /// (`classical::fallback_candidates`; small searches only). Off: the network's candidates
+    /// image with the classical matcher around the template's expected scale (four scale pairs,
+    /// ÷ and × 1.2 on each axis, where they fit its budget, else the expected scale:
+    /// `classical::fallback_candidates`; small searches only). Off: the network's candidates
     /// alone (a frame without the part costs no more than one with it).
     pub classical_fallback: bool,
     /// Which contrast the part may show ([`Polarity`]); the network and the verification
