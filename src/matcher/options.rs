@@ -198,10 +198,11 @@ pub struct MatchOptions {
     pub verify: bool,
     /// The network, or the classical NCC matcher.
     pub method: Method,
-    /// With verification: when no candidate of the network verifies at `min_score`, search the
-    /// image with the classical matcher around the template's expected scale (four scale pairs,
-    /// ÷ and × 1.2 on each axis, where they fit its budget, else the expected scale:
-    /// `classical::fallback_candidates`; small searches only). Off: the network's candidates
+    /// With verification: when no candidate of the network verifies at `min_score` (a template
+    /// with a mask: always), search the image with the classical matcher around the template's
+    /// expected scale: four scale pairs, ÷ and × 1.2 on each axis (a masked template three
+    /// scales 1.25 apart), where they fit its budget, else the expected scale alone
+    /// (`classical::fallback_candidates`; small searches only). Off: the network's candidates
     /// alone (a frame without the part costs no more than one with it).
     pub classical_fallback: bool,
     /// Which contrast the part may show ([`Polarity`]); the network and the verification
