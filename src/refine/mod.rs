@@ -31,12 +31,14 @@ use crate::geometry::{Pose, wrap_angle_deg};
 pub(crate) mod align;
 mod correlate;
 mod coverage;
+mod detrend;
 mod noise;
 mod rank;
 mod shading;
 mod sharpness;
 
 pub(crate) use coverage::Coverage;
+pub(crate) use detrend::PlaneFreePoints;
 pub(crate) use noise::{NoiseLevel, NoisePoints};
 pub(crate) use rank::RankPoints;
 pub(crate) use shading::ShadingPoints;
