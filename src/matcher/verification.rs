@@ -654,10 +654,9 @@ impl<'a> Verifier<'a> {
     /// ([`PlaneFreePoints`]: what is left of a ramp of light over the part does not count), so
     /// a screen that evening the light leads astray changes nothing. The screen's score is
     /// then that correlation (or the first screen's own, where the first pose stays and its
-    /// own is higher). A first screen that already
-    /// reached [`RESCREEN_BELOW`] is kept as it is.
+    /// own is higher). A first screen that already reached [`RESCREEN_BELOW`] is kept as it is.
     ///
-    /// Judged by the plain ZNCC on the level (before 2026-11-29), the second screen's pose
+    /// Judged by the plain ZNCC on the level (until 2026-11-29), the second screen's pose
     /// lost to the first wherever a low-contrast part's own correlation was spoilt by the ramp;
     /// tuning photos (47 held-out corpus photos + 2 lomiri images; the 20 lomiri photos; 200
     /// S1.5 pairs, seed 0), `uneven-light` found 75.5 → 78.0 % and 94.0 → 95.0 %, clean,
@@ -674,12 +673,11 @@ impl<'a> Verifier<'a> {
             ScreeningLevel { image, gradients }
         });
         let second = self.screen_on(candidate, &evened.image, evened.gradients.as_ref());
-        let on_level = |pose: &Pose| self.on_level(pose);
         let Some(plane_free) = &self.level_plane_free else {
             // A template that is a plane: the plain ZNCC judges.
             let score = self
                 .level_points
-                .score(&self.level_image, &on_level(&second.pose));
+                .score(&self.level_image, &self.on_level(&second.pose));
             return if score > first.score {
                 Screened {
                     pose: second.pose,
@@ -693,7 +691,7 @@ impl<'a> Verifier<'a> {
             plane_free.score(
                 &self
                     .level_points
-                    .samples(&self.level_image, &on_level(pose)),
+                    .samples(&self.level_image, &self.on_level(pose)),
             )
         };
         let (first_judged, second_judged) = (judged(&first.pose), judged(&second.pose));
