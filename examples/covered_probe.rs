@@ -14,6 +14,7 @@ use posematch::evaluation::pair_error;
 use posematch::imaging::GrayImage32;
 use posematch::matcher::verification::Verifier;
 use posematch::matcher::{MatchOptions, ValidOptions};
+use posematch::refine::Light;
 use posematch::synth::conditions::{self, Condition};
 use posematch::synth::{Level, PairSpec, PhotoSet, make_pair};
 
@@ -58,7 +59,7 @@ fn main() {
         let out = matcher.match_one(&encoded, &pair.search, &options).unwrap();
         let image = GrayImage32::from_rgb(&pair.search);
         let whole = Verifier::for_options(&encoded.gray, &image, &options);
-        let oracle_whole = whole.confirm(&whole.screen(&truth), &truth);
+        let oracle_whole = whole.confirm(&whole.screen(&truth), &truth, Light::Even);
         let mut oracle = whole.score_at(&oracle_whole.pose);
         let mut oracle_pose = oracle_whole.pose;
         if let Some(q) = quadrant {
@@ -70,7 +71,7 @@ fn main() {
                 }
             }
             let pv = Verifier::for_options(&partial, &image, &options);
-            let c = pv.confirm(&pv.screen(&truth), &truth);
+            let c = pv.confirm(&pv.screen(&truth), &truth, Light::Even);
             let s = whole.score_at(&c.pose);
             if s > oracle {
                 oracle = s;

@@ -17,6 +17,7 @@ use posematch::geometry::Pose;
 use posematch::imaging::GrayImage32;
 use posematch::matcher::verification::{RANKED_BEYOND_SURVIVORS, Verifier, wants_second_screen};
 use posematch::matcher::{MatchJob, MatchOptions, ValidOptions};
+use posematch::refine::Light;
 use posematch::synth::conditions::{self, Condition};
 use posematch::synth::{Level, PairSpec, PhotoSet, make_pair};
 
@@ -121,11 +122,14 @@ fn main() {
                 .map(|(i, c)| (i, *c, verifier.screen(c)))
                 .collect();
         // One instance wanted, as in `posematch eval`'s pairs.
-        if wants_second_screen(screened.iter().map(|s| &s.2), 1) {
+        let light = if wants_second_screen(screened.iter().map(|s| &s.2), 1) {
             for (_, candidate, screen) in &mut screened {
                 *screen = verifier.screen_evened(candidate, *screen);
             }
-        }
+            Light::Planes
+        } else {
+            Light::Even
+        };
         screened.sort_by(|a, b| b.2.score.total_cmp(&a.2.score));
         // The best screens by their score, as `verify_candidates` ranks them (two survivors).
         let ranked = screened.len().min(2 + RANKED_BEYOND_SURVIVORS);
@@ -152,8 +156,8 @@ fn main() {
             continue;
         }
         let best = &screened[0];
-        let winner = verifier.confirm(&best.2, &best.1);
-        let second = screened.get(1).map(|s| verifier.confirm(&s.2, &s.1));
+        let winner = verifier.confirm(&best.2, &best.1, light);
+        let second = screened.get(1).map(|s| verifier.confirm(&s.2, &s.1, light));
         let picked = match second {
             Some(s) if s.score > winner.score => s,
             _ => winner,
@@ -171,7 +175,7 @@ fn main() {
         }
         // Oracle: screen and confirm at the truth.
         let oracle_screen = verifier.screen(&truth);
-        let oracle = verifier.confirm(&oracle_screen, &truth);
+        let oracle = verifier.confirm(&oracle_screen, &truth, light);
         let near: Vec<usize> = candidates
             .iter()
             .enumerate()

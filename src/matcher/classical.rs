@@ -16,7 +16,7 @@ use rayon::prelude::*;
 
 use crate::geometry::Pose;
 use crate::imaging::{GrayImage32, gaussian_blur};
-use crate::refine::{TemplatePoints, zncc};
+use crate::refine::{Light, TemplatePoints, zncc};
 
 use super::error::MatchError;
 use super::options::{Contrast, MatchOptions};
@@ -468,6 +468,7 @@ fn confirm_peaks(
                     score: initial.score,
                 },
                 &initial,
+                Light::Even,
             );
             Pose {
                 score: verified.score,

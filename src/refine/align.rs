@@ -12,6 +12,9 @@
 //! The residual is `α·I(W(u; p)) + β − T(u)` with the gain `α` and offset `β` re-fitted in closed
 //! form every iteration, so minimising it is maximising the zero-mean normalised correlation the
 //! rest of the refinement scores with (lighting changes between template and image cost nothing).
+//! Under [`Light::Planes`] the gain and the offset are planes over the part instead, fitted the
+//! same way: light that changes across the part (`refine/shading.rs`) then pulls the pose no
+//! more than even light does.
 
 use multiversion::multiversion;
 
@@ -86,6 +89,17 @@ pub(crate) fn blurred_window(
     (window, left as f32, top as f32)
 }
 
+/// How the image's values are mapped onto the template's while aligning: the photometric
+/// model of the residual, fitted in closed form at every step.
+#[derive(Debug, Clone, Copy, PartialEq, Eq)]
+pub enum Light {
+    /// One gain and one offset over the part: minimising the residual maximises ZNCC.
+    Even,
+    /// A gain and an offset that each change linearly across the part (`α(u, v)·I + β(u, v)`),
+    /// as light falling across the frame or a lamp on one side give it.
+    Planes,
+}
+
 /// Template points: offsets from the template centre and values, taken from the template
 /// blurred to match the window's blur at the expected scale.
 pub(crate) struct AlignPoints {
@@ -94,6 +108,9 @@ pub(crate) struct AlignPoints {
     /// Σ T and Σ (T − mean)², for the closed-form cost.
     sum: f64,
     spread: f64,
+    /// The largest `|u|` or `|v|` (at least 1): the planes' coordinates are offsets divided by
+    /// it, so that their fit is as well conditioned as the gain's.
+    extent: f32,
 }
 
 impl AlignPoints {
@@ -115,10 +132,15 @@ impl AlignPoints {
         let sum: f64 = values.iter().map(|&t| t as f64).sum();
         let mean = sum / values.len().max(1) as f64;
         let spread = values.iter().map(|&t| (t as f64 - mean).powi(2)).sum();
+        let extent = offsets
+            .iter()
+            .map(|&(u, v)| u.abs().max(v.abs()))
+            .fold(1.0f32, f32::max);
         Self {
             lanes: PointLanes::new(&offsets, &values),
             sum,
             spread,
+            extent,
         }
     }
 }
@@ -132,14 +154,15 @@ pub(crate) fn align(
     start: &Pose,
     iterations: usize,
     tolerance: f64,
+    light: Light,
 ) -> Pose {
     let mut pose = *start;
-    let Some(mut cost) = residual_cost(points, window, &pose) else {
+    let Some(mut cost) = residual_cost(points, window, &pose, light) else {
         return pose;
     };
     let mut damping = 1e-3f64;
     for _ in 0..iterations {
-        let Some((hessian, gradient)) = normal_equations(points, window, &pose) else {
+        let Some((hessian, gradient)) = normal_equations(points, window, &pose, light) else {
             break;
         };
         let mut improved = false;
@@ -148,7 +171,7 @@ pub(crate) fn align(
             for (k, row) in system.iter_mut().enumerate() {
                 row[k] += damping * hessian[k][k].max(1e-9);
             }
-            let Some(step) = solve5(system, gradient) else {
+            let Some(step) = solve(system, gradient) else {
                 damping *= 10.0;
                 continue;
             };
@@ -159,7 +182,7 @@ pub(crate) fn align(
                 damping *= 10.0;
                 continue;
             }
-            match residual_cost(points, window, &candidate) {
+            match residual_cost(points, window, &candidate, light) {
                 Some(c) if c < cost => {
                     let converged = (cost - c) < tolerance * cost.max(1e-12);
                     pose = candidate;
@@ -191,60 +214,155 @@ fn apply(pose: &Pose, step: &[f64; 5]) -> Pose {
 }
 
 /// Residual sum of squares after the photometric fit, relative to the template's variance
-/// (`1 − ZNCC²`), or `None` where the image is flat or the match inverted.
-fn residual_cost(points: &AlignPoints, window: &GradientWindow, pose: &Pose) -> Option<f64> {
-    let n = points.lanes.len() as f64;
-    // Sums of I − reference: variance and covariance do not change with the shift.
-    let sums = points
-        .lanes
-        .sums_at(&window.image, &Affine::of(pose, window.x0, window.y0));
-    let (si, sii, sit) = (sums.sum, sums.sum_sq, sums.dot);
-    let variance = sii - si * si / n;
-    let covariance = sit - si * points.sum / n;
-    if variance <= 1e-9 || covariance <= 0.0 {
+/// (`1 − ZNCC²` under [`Light::Even`]), or `None` where the image is flat or the match inverted.
+fn residual_cost(
+    points: &AlignPoints,
+    window: &GradientWindow,
+    pose: &Pose,
+    light: Light,
+) -> Option<f64> {
+    let map = Affine::of(pose, window.x0, window.y0);
+    match light {
+        Light::Even => {
+            let n = points.lanes.len() as f64;
+            // Sums of I − reference: variance and covariance do not change with the shift.
+            let sums = points.lanes.sums_at(&window.image, &map);
+            let (si, sii, sit) = (sums.sum, sums.sum_sq, sums.dot);
+            let variance = sii - si * si / n;
+            let covariance = sit - si * points.sum / n;
+            if variance <= 1e-9 || covariance <= 0.0 {
+                return None;
+            }
+            // min over α, β of Σ(αI + β − T)² = S_tt − S_it² / S_ii (centred sums).
+            Some(1.0 - covariance * covariance / (variance * points.spread.max(1e-12)))
+        }
+        Light::Planes => plane_fit(points, window, &map).map(|fit| fit.cost),
+    }
+}
+
+/// The photometric planes of [`Light::Planes`] fitted at one pose: `α(u, v) = gain · [1, u, v]`
+/// and `β(u, v) = offset · [1, u, v]` in template offsets, and the residual they leave relative
+/// to the template's variance.
+struct PlaneFit {
+    gain: [f32; 3],
+    offset: [f32; 3],
+    cost: f64,
+}
+
+/// Least squares of `Σ (α(u, v)·I + β(u, v) − T)²` over the six coefficients, the image sampled
+/// where `map` puts the points; `None` where the image is flat there or the gain at the centre
+/// is not positive (an inverted match, as [`Light::Even`] refuses it).
+fn plane_fit(points: &AlignPoints, window: &GradientWindow, map: &Affine) -> Option<PlaneFit> {
+    let mut samples = Vec::new();
+    points.lanes.samples_at(&window.image, map, &mut samples);
+    let n = samples.len() as f64;
+    let mean = samples.iter().map(|&i| f64::from(i)).sum::<f64>() / n.max(1.0);
+    let variance = samples
+        .iter()
+        .map(|&i| (f64::from(i) - mean).powi(2))
+        .sum::<f64>();
+    if variance <= 1e-9 {
         return None;
     }
-    // min over α, β of Σ(αI + β − T)² = S_tt − S_it² / S_ii (centred sums).
-    Some(1.0 - covariance * covariance / (variance * points.spread.max(1e-12)))
+    let scale = f64::from(points.extent).recip();
+    // Regressors `[I', u·I', v·I', 1, u, v]` with `I' = I − mean` and `u`, `v` scaled.
+    let regressors = |((u, v), i): ((f32, f32), f32)| -> [f64; 6] {
+        let (u, v, i) = (
+            f64::from(u) * scale,
+            f64::from(v) * scale,
+            f64::from(i) - mean,
+        );
+        [i, u * i, v * i, 1.0, u, v]
+    };
+    let mut normal = [[0f64; 6]; 6];
+    let mut rhs = [0f64; 6];
+    for (((u, v), t), &i) in points.lanes.points().zip(&samples) {
+        let x = regressors(((u, v), i));
+        for a in 0..6 {
+            rhs[a] += x[a] * f64::from(t);
+            for b in a..6 {
+                normal[a][b] += x[a] * x[b];
+            }
+        }
+    }
+    let upper = normal;
+    for (a, row) in normal.iter_mut().enumerate() {
+        for (b, entry) in row.iter_mut().enumerate().take(a) {
+            *entry = upper[b][a];
+        }
+    }
+    let c = solve(normal, rhs)?;
+    if c[0] <= 0.0 {
+        return None;
+    }
+    let residual: f64 = points
+        .lanes
+        .points()
+        .zip(&samples)
+        .map(|(((u, v), t), &i)| {
+            let x = regressors(((u, v), i));
+            let fitted: f64 = x.iter().zip(&c).map(|(x, c)| x * c).sum();
+            (fitted - f64::from(t)).powi(2)
+        })
+        .sum();
+    // Back to raw offsets and raw image values: α·(I − mean) + β = α·I + (β − α·mean).
+    let gain = [c[0], c[1] * scale, c[2] * scale];
+    let offset = [
+        c[3] - c[0] * mean,
+        c[4] * scale - c[1] * scale * mean,
+        c[5] * scale - c[2] * scale * mean,
+    ];
+    Some(PlaneFit {
+        gain: gain.map(|g| g as f32),
+        offset: offset.map(|o| o as f32),
+        cost: residual / points.spread.max(1e-12),
+    })
 }
 
 type Matrix5 = [[f64; 5]; 5];
 
-/// `JᵀJ` and `Jᵀr` of the residuals `r = α·I + β − T` at `pose`, `(α, β)` fitted in closed
-/// form first; `None` where the image is flat there.
+/// `JᵀJ` and `Jᵀr` of the residuals `r = α·I + β − T` at `pose`, the photometric model fitted
+/// in closed form first; `None` where the image is flat there.
 fn normal_equations(
     points: &AlignPoints,
     window: &GradientWindow,
     pose: &Pose,
+    light: Light,
 ) -> Option<(Matrix5, [f64; 5])> {
     let map = Affine::of(pose, window.x0, window.y0);
-    let n = points.lanes.len() as f64;
-    let sums = points.lanes.sums_at(&window.image, &map);
-    let (si, sii, sit) = (sums.sum, sums.sum_sq, sums.dot);
-    let variance = sii - si * si / n;
-    if variance <= 1e-9 {
-        return None;
-    }
-    // Gain and offset that best map image values onto template values (on the shifted
-    // values, then the offset moved back by the shift).
-    let alpha = (sit - si * points.sum / n) / variance;
-    let beta = (points.sum - alpha * si) / n - alpha * sums.reference as f64;
-    let moments = jacobian_moments(&points.lanes, window, &map, pose, alpha as f32, beta as f32);
-    // The Jacobian of r is α times the unscaled one of the moments.
+    let (gain, offset) = match light {
+        Light::Even => {
+            let n = points.lanes.len() as f64;
+            let sums = points.lanes.sums_at(&window.image, &map);
+            let (si, sii, sit) = (sums.sum, sums.sum_sq, sums.dot);
+            let variance = sii - si * si / n;
+            if variance <= 1e-9 {
+                return None;
+            }
+            // Gain and offset that best map image values onto template values (on the shifted
+            // values, then the offset moved back by the shift).
+            let alpha = (sit - si * points.sum / n) / variance;
+            let beta = (points.sum - alpha * si) / n - alpha * sums.reference as f64;
+            ([alpha as f32, 0.0, 0.0], [beta as f32, 0.0, 0.0])
+        }
+        Light::Planes => {
+            let fit = plane_fit(points, window, &map)?;
+            (fit.gain, fit.offset)
+        }
+    };
+    let moments = jacobian_moments(&points.lanes, window, &map, pose, gain, offset);
     let mut hessian = [[0f64; 5]; 5];
-    let mut gradient = [0f64; 5];
-    for (g, m) in gradient.iter_mut().zip(moments.gradient) {
-        *g = alpha * m as f64;
-    }
+    let gradient = moments.gradient.map(f64::from);
     for ((a, b), m) in UPPER_TRIANGLE.into_iter().zip(moments.hessian) {
-        hessian[a][b] = alpha * alpha * m as f64;
+        hessian[a][b] = m as f64;
         hessian[b][a] = hessian[a][b];
     }
     Some((hessian, gradient))
 }
 
 /// Σ jjᵀ (upper triangle, row by row) and Σ j·r over the template points, with `j` the
-/// derivative of the image value at a point by `[x, y, θ, sx, sy]` and `r = α·I + β − T`.
+/// derivative of `α·I` at a point by `[x, y, θ, sx, sy]` and `r = α·I + β − T`, where
+/// `α = gain · [1, u, v]` and `β = offset · [1, u, v]` (constant under [`Light::Even`]).
 struct JacobianMoments {
     hessian: [f32; 15],
     gradient: [f32; 5],
@@ -275,13 +393,17 @@ fn jacobian_moments(
     window: &GradientWindow,
     map: &Affine,
     pose: &Pose,
-    alpha: f32,
-    beta: f32,
+    gain: [f32; 3],
+    offset: [f32; 3],
 ) -> JacobianMoments {
     let (width, height) = (window.image.width, window.image.height);
-    let planes = [&window.image.values[..], &window.gx[..], &window.gy[..]];
-    for plane in planes {
-        assert_eq!(plane.len(), width * height, "window planes match its size");
+    let buffers = [&window.image.values[..], &window.gx[..], &window.gy[..]];
+    for buffer in buffers {
+        assert_eq!(
+            buffer.len(),
+            width * height,
+            "window buffers match its size"
+        );
     }
     let (s, c) = pose.angle_deg.to_radians().sin_cos();
     let (sx, sy) = (pose.scale_x, pose.scale_y);
@@ -299,11 +421,11 @@ fn jacobian_moments(
         for lane in 0..LANES {
             let (x, y) = map.apply(u[lane], v[lane]);
             let tap = BilinearTap::new(width, height, x, y);
-            // SAFETY: every plane is width x height (asserted above).
+            // SAFETY: every buffer is width x height (asserted above).
             unsafe {
-                i[lane] = tap.apply_unchecked(planes[0]);
-                gx[lane] = tap.apply_unchecked(planes[1]);
-                gy[lane] = tap.apply_unchecked(planes[2]);
+                i[lane] = tap.apply_unchecked(buffers[0]);
+                gx[lane] = tap.apply_unchecked(buffers[1]);
+                gy[lane] = tap.apply_unchecked(buffers[2]);
             }
         }
         for lane in 0..LANES {
@@ -314,8 +436,10 @@ fn jacobian_moments(
             } else {
                 0.0
             };
+            let alpha = gain[0] + gain[1] * u + gain[2] * v;
+            let beta = offset[0] + offset[1] * u + offset[2] * v;
             let r = (alpha * i[lane] + beta - t[lane]) * weight;
-            let (gx, gy) = (gx[lane] * weight, gy[lane] * weight);
+            let (gx, gy) = (gx[lane] * weight * alpha, gy[lane] * weight * alpha);
             // d(x_img, y_img) / d(θ, sx, sy) for x = x0 + sx·u·c + sy·v·s,
             // y = y0 − sx·u·s + sy·v·c.
             let dtheta = (-sx * u * s + sy * v * c, -sx * u * c - sy * v * s);
@@ -340,27 +464,27 @@ fn jacobian_moments(
     }
 }
 
-/// Solves the 5x5 system by Gaussian elimination with partial pivoting.
+/// Solves the NxN system by Gaussian elimination with partial pivoting.
 #[allow(clippy::needless_range_loop)] // index form mirrors the matrix algebra
-fn solve5(mut m: Matrix5, mut rhs: [f64; 5]) -> Option<[f64; 5]> {
-    for col in 0..5 {
-        let pivot = (col..5).max_by(|&a, &b| m[a][col].abs().total_cmp(&m[b][col].abs()))?;
+fn solve<const N: usize>(mut m: [[f64; N]; N], mut rhs: [f64; N]) -> Option<[f64; N]> {
+    for col in 0..N {
+        let pivot = (col..N).max_by(|&a, &b| m[a][col].abs().total_cmp(&m[b][col].abs()))?;
         if m[pivot][col].abs() < 1e-12 {
             return None;
         }
         m.swap(col, pivot);
         rhs.swap(col, pivot);
-        for row in col + 1..5 {
+        for row in col + 1..N {
             let f = m[row][col] / m[col][col];
-            for k in col..5 {
+            for k in col..N {
                 m[row][k] -= f * m[col][k];
             }
             rhs[row] -= f * rhs[col];
         }
     }
-    let mut x = [0f64; 5];
-    for row in (0..5).rev() {
-        let tail: f64 = (row + 1..5).map(|k| m[row][k] * x[k]).sum();
+    let mut x = [0f64; N];
+    for row in (0..N).rev() {
+        let tail: f64 = (row + 1..N).map(|k| m[row][k] * x[k]).sum();
         x[row] = (rhs[row] - tail) / m[row][row];
     }
     x.iter().all(|v| v.is_finite()).then_some(x)
@@ -384,7 +508,26 @@ mod tests {
             .iter()
             .map(|row| row.iter().zip(&x).map(|(a, b)| a * b).sum())
             .collect();
-        let solved = solve5(m, rhs.try_into().unwrap()).unwrap();
+        let solved = solve(m, rhs.try_into().unwrap()).unwrap();
+        for (a, b) in solved.iter().zip(&x) {
+            assert!((a - b).abs() < 1e-9, "{solved:?}");
+        }
+    }
+
+    #[test]
+    fn solves_a_six_by_six_system_as_the_planes_fit_needs() {
+        let m: [[f64; 6]; 6] = std::array::from_fn(|a| {
+            std::array::from_fn(|b| {
+                if a == b {
+                    6.0
+                } else {
+                    1.0 / (1 + a + b) as f64
+                }
+            })
+        });
+        let x = [0.5, -1.0, 2.0, 0.25, -3.0, 1.5];
+        let rhs = m.map(|row| row.iter().zip(&x).map(|(a, b)| a * b).sum());
+        let solved = solve(m, rhs).unwrap();
         for (a, b) in solved.iter().zip(&x) {
             assert!((a - b).abs() < 1e-9, "{solved:?}");
         }

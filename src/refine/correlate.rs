@@ -76,6 +76,12 @@ impl PointLanes {
     /// The image (bilinear, coordinates clamped) where `pose` maps each real point, in the
     /// points' order, written over `out`.
     pub(super) fn samples(&self, image: &GrayImage32, pose: &Pose, out: &mut Vec<f32>) {
+        self.samples_at(image, &Affine::of(pose, 0.0, 0.0), out);
+    }
+
+    /// The image (bilinear, coordinates clamped) where `map` puts each real point, in the
+    /// points' order, written over `out`.
+    pub(super) fn samples_at(&self, image: &GrayImage32, map: &Affine, out: &mut Vec<f32>) {
         assert_eq!(
             image.values.len(),
             image.width * image.height,
@@ -86,7 +92,7 @@ impl PointLanes {
             return;
         }
         out.resize(self.us.len(), 0.0);
-        lane_samples(&self.us, &self.vs, image, &Affine::of(pose, 0.0, 0.0), out);
+        lane_samples(&self.us, &self.vs, image, map, out);
         out.truncate(self.count);
     }
 

@@ -37,6 +37,7 @@ mod rank;
 mod shading;
 mod sharpness;
 
+pub use align::Light;
 pub(crate) use coverage::Coverage;
 pub(crate) use detrend::PlaneFreePoints;
 pub(crate) use noise::{NoiseLevel, NoisePoints};
@@ -481,14 +482,16 @@ pub(crate) fn fine_search(
 }
 
 /// All five parameters jointly, coarse to fine (Gauss–Newton on blurred images, see [`align`]),
-/// from each of `starts`; the pose with the highest ZNCC under `support` wins. `around` is the
-/// pose whose neighbourhood the blurred windows cover (the candidate's).
+/// under `light`'s photometric model, from each of `starts`; the pose with the highest ZNCC
+/// under `support` wins. `around` is the pose whose neighbourhood the blurred windows cover
+/// (the candidate's).
 pub(crate) fn align_from(
     template: &GrayImage32,
     support: &TemplatePoints,
     image: &GrayImage32,
     starts: &[Pose],
     around: &Pose,
+    light: align::Light,
 ) -> Scored {
     let longest_side = template.width.max(template.height) as f32;
     let largest_scale = starts
@@ -525,7 +528,7 @@ pub(crate) fn align_from(
     for start in starts {
         let mut pose = *start;
         for (points, window) in &levels {
-            pose = align::align(points, window, &pose, 20, ALIGN_TOLERANCE);
+            pose = align::align(points, window, &pose, 20, ALIGN_TOLERANCE, light);
         }
         let score = support.score(image, &pose);
         if score > best.score {
@@ -561,6 +564,7 @@ pub fn refine_pose(template: &GrayImage32, image: &GrayImage32, initial: &Pose) 
         image,
         &[searched.pose, *initial],
         initial,
+        align::Light::Even,
     );
     // Keep the network's pose unless the refined one is better, clearly a match (as the paper
     // keeps its estimate when every candidate scores below a threshold), and no jump to a
@@ -750,6 +754,7 @@ mod tests {
                 score: 0.0,
             },
             &start,
+            Light::Even,
         );
         let pose = confirmed.pose;
         assert!(
@@ -779,6 +784,30 @@ mod tests {
             "{refined:?}"
         );
         assert_eq!(refined.score, rough.score);
+    }
+
+    /// Light falling steeply across the part (its gain 1.5x from one side to the other): the
+    /// alignment under [`Light::Planes`] lands on the part; under [`Light::Even`] the ramp
+    /// pulls it off.
+    #[test]
+    fn light_falling_across_the_part_pulls_the_even_alignment_not_the_planes_one() {
+        let (image, truth, template) = posed_texture();
+        let lit = GrayImage32::from_fn(image.width, image.height, |x, y| {
+            image.values[y * image.width + x] * (1.5 - 0.008 * x as f32)
+        });
+        let support = TemplatePoints::support(&template);
+        let start = Pose {
+            x: truth.x + 1.0,
+            y: truth.y - 0.8,
+            angle_deg: truth.angle_deg + 2.0,
+            ..truth
+        };
+        let aligned = |light| align_from(&template, &support, &lit, &[start], &start, light).pose;
+        let error = |pose: &Pose| (pose.x - truth.x).hypot(pose.y - truth.y);
+        let (even, planes) = (aligned(Light::Even), aligned(Light::Planes));
+        assert_centre_and_angle(&planes, &truth);
+        assert!(error(&planes) < 0.05, "{planes:?}");
+        assert!(error(&even) > 2.0 * error(&planes), "{even:?} {planes:?}");
     }
 
     #[test]
