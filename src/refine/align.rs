@@ -250,8 +250,8 @@ struct PlaneFit {
 }
 
 /// Least squares of `Σ (α(u, v)·I + β(u, v) − T)²` over the six coefficients, the image sampled
-/// where `map` puts the points; `None` where the image is flat there or the gain at the centre
-/// is not positive (an inverted match, as [`Light::Even`] refuses it).
+/// where `map` puts the points; `None` where the image is flat there or the gain is not
+/// positive over the whole part (contrast inverted there, as [`Light::Even`] refuses it).
 fn plane_fit(points: &AlignPoints, window: &GradientWindow, map: &Affine) -> Option<PlaneFit> {
     let mut samples = Vec::new();
     points.lanes.samples_at(&window.image, map, &mut samples);
@@ -292,7 +292,8 @@ fn plane_fit(points: &AlignPoints, window: &GradientWindow, map: &Affine) -> Opt
         }
     }
     let c = solve(normal, rhs)?;
-    if c[0] <= 0.0 {
+    // The gain at the template's farthest corner is `c0 ± c1 ± c2` (scaled offsets within ±1).
+    if c[0] <= c[1].abs() + c[2].abs() {
         return None;
     }
     let residual: f64 = points
