@@ -18,7 +18,7 @@
 
 use multiversion::multiversion;
 
-use super::correlate::{Affine, LANES, PointLanes};
+use super::correlate::{Affine, LANES, LaneTap, PointLanes, fits_lanes};
 use crate::geometry::Pose;
 use crate::imaging::{BilinearTap, GrayImage32, gaussian_blur, gradients};
 
@@ -406,6 +406,8 @@ fn jacobian_moments(
             "window buffers match its size"
         );
     }
+    // Windows that fit the lanes (all but absurd ones) gather with 32-bit indices.
+    let narrow = fits_lanes(width, height);
     let (s, c) = pose.angle_deg.to_radians().sin_cos();
     let (sx, sy) = (pose.scale_x, pose.scale_y);
     let mut hessian = [[0f32; LANES]; 15];
@@ -419,14 +421,28 @@ fn jacobian_moments(
         .enumerate()
     {
         let (mut i, mut gx, mut gy) = ([0f32; LANES], [0f32; LANES], [0f32; LANES]);
-        for lane in 0..LANES {
-            let (x, y) = map.apply(u[lane], v[lane]);
-            let tap = BilinearTap::new(width, height, x, y);
-            // SAFETY: every buffer is width x height (asserted above).
-            unsafe {
-                i[lane] = tap.apply_unchecked(buffers[0]);
-                gx[lane] = tap.apply_unchecked(buffers[1]);
-                gy[lane] = tap.apply_unchecked(buffers[2]);
+        if narrow {
+            let (w32, h32) = (width as i32, height as i32);
+            for lane in 0..LANES {
+                let (x, y) = map.apply(u[lane], v[lane]);
+                let tap = LaneTap::new(w32, h32, x, y);
+                // SAFETY: every buffer is width x height (asserted above) and fits 32 bits.
+                unsafe {
+                    i[lane] = tap.apply_unchecked(buffers[0]);
+                    gx[lane] = tap.apply_unchecked(buffers[1]);
+                    gy[lane] = tap.apply_unchecked(buffers[2]);
+                }
+            }
+        } else {
+            for lane in 0..LANES {
+                let (x, y) = map.apply(u[lane], v[lane]);
+                let tap = BilinearTap::new(width, height, x, y);
+                // SAFETY: every buffer is width x height (asserted above).
+                unsafe {
+                    i[lane] = tap.apply_unchecked(buffers[0]);
+                    gx[lane] = tap.apply_unchecked(buffers[1]);
+                    gy[lane] = tap.apply_unchecked(buffers[2]);
+                }
             }
         }
         for lane in 0..LANES {
