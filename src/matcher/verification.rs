@@ -802,8 +802,9 @@ impl<'a> Verifier<'a> {
     /// (the better fit wins; tuning sets, 47 held-out corpus photos + 2 lomiri images and 20
     /// lomiri photos, 200 S1.5 pairs, seed 0: noise-15 93.5 → 94.0 % and 99.0 → 99.5 %,
     /// uneven-light 82.0 → 82.5 %, defocus-2 96.5 → 97.0 % on the lomiri photos, every other
-    /// condition and the answers without the part unchanged). The alignment may move the centre by at most a third of the object from where the screen
-    /// left it (otherwise it found a neighbour, which has its own candidate; measured from the
+    /// condition and the answers without the part unchanged). The alignment may move the
+    /// centre by at most a third of the object from where the screen left it (otherwise it
+    /// found a neighbour, which has its own candidate; measured from the
     /// network's candidate instead, a screen that had already moved nearly that far left the
     /// alignment no room, and the coarser fine-search pose was kept); it is kept only if it is
     /// more similar. Both poses are held to the caller's scale range: where the template fits

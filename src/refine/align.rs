@@ -421,28 +421,18 @@ fn jacobian_moments(
         .enumerate()
     {
         let (mut i, mut gx, mut gy) = ([0f32; LANES], [0f32; LANES], [0f32; LANES]);
-        if narrow {
-            let (w32, h32) = (width as i32, height as i32);
-            for lane in 0..LANES {
-                let (x, y) = map.apply(u[lane], v[lane]);
-                let tap = LaneTap::new(w32, h32, x, y);
-                // SAFETY: every buffer is width x height (asserted above) and fits 32 bits.
-                unsafe {
-                    i[lane] = tap.apply_unchecked(buffers[0]);
-                    gx[lane] = tap.apply_unchecked(buffers[1]);
-                    gy[lane] = tap.apply_unchecked(buffers[2]);
-                }
-            }
-        } else {
-            for lane in 0..LANES {
-                let (x, y) = map.apply(u[lane], v[lane]);
-                let tap = BilinearTap::new(width, height, x, y);
-                // SAFETY: every buffer is width x height (asserted above).
-                unsafe {
-                    i[lane] = tap.apply_unchecked(buffers[0]);
-                    gx[lane] = tap.apply_unchecked(buffers[1]);
-                    gy[lane] = tap.apply_unchecked(buffers[2]);
-                }
+        for lane in 0..LANES {
+            let (x, y) = map.apply(u[lane], v[lane]);
+            // SAFETY: every buffer is width x height (asserted above); a `LaneTap` only where
+            // the window fits the lanes.
+            unsafe {
+                [i[lane], gx[lane], gy[lane]] = if narrow {
+                    let tap = LaneTap::new(width as i32, height as i32, x, y);
+                    buffers.map(|buffer| tap.apply_unchecked(buffer))
+                } else {
+                    let tap = BilinearTap::new(width, height, x, y);
+                    buffers.map(|buffer| tap.apply_unchecked(buffer))
+                };
             }
         }
         for lane in 0..LANES {

@@ -232,16 +232,6 @@ impl LaneTap {
     }
 }
 
-/// The sample at `(x, y)` of a plane that fits [`LaneTap`].
-///
-/// # Safety
-/// `values.len() == width * height`, `1 <= width, height`, and the plane [`fits_lanes`].
-#[inline(always)]
-unsafe fn sample32(values: &[f32], width: i32, height: i32, x: f32, y: f32) -> f32 {
-    // SAFETY: the caller's guarantee.
-    unsafe { LaneTap::new(width, height, x, y).apply_unchecked(values) }
-}
-
 #[multiversion(targets("x86_64+avx512f+avx512vl+avx512bw+avx512dq", "x86_64+avx2+fma"))]
 fn lane_sums(us: &[f32], vs: &[f32], weights: &[f32], image: &GrayImage32, map: &Affine) -> Sums {
     let (values, width, height) = (&image.values[..], image.width, image.height);
@@ -252,7 +242,7 @@ fn lane_sums(us: &[f32], vs: &[f32], weights: &[f32], image: &GrayImage32, map: 
     let at = |u: f32, v: f32| {
         let (x, y) = map.apply(u, v);
         // SAFETY: the caller checked `values.len() == width * height`, and it fits 32 bits.
-        unsafe { sample32(values, w32, h32, x, y) }
+        unsafe { LaneTap::new(w32, h32, x, y).apply_unchecked(values) }
     };
     let reference = at(us[0], vs[0]);
     let mut sum = [0f64; LANES];
@@ -341,7 +331,7 @@ fn lane_samples(us: &[f32], vs: &[f32], image: &GrayImage32, map: &Affine, out: 
         for lane in 0..LANES {
             let (x, y) = map.apply(u[lane], v[lane]);
             // SAFETY: the caller checked `values.len() == width * height`, and it fits 32 bits.
-            out[lane] = unsafe { sample32(values, w32, h32, x, y) };
+            out[lane] = unsafe { LaneTap::new(w32, h32, x, y).apply_unchecked(values) };
         }
     }
 }
