@@ -341,73 +341,61 @@ fn coarse_peaks(
     let factor = plan.factor;
     let hi = plan.scales.iter().copied().fold(1.0f32, f32::max);
     let (scales, angles) = (&plan.scales, &plan.angles);
-    // Best score per coarse position, with the pose that gave it.
+    // Best score per coarse position, with the angle and scale pair that gave it: one map per
+    // angle, in parallel, then the best over angles (the first of equal scores wins).
     let (gw, gh) = plan.grid;
-    let empty = (
-        -1.0f32,
-        Pose {
-            x: 0.0,
-            y: 0.0,
-            angle_deg: 0.0,
-            scale_x: 1.0,
-            scale_y: 1.0,
-            score: 0.0,
-            network_score: 0.0,
-        },
-    );
-    // One best-score map per angle, in parallel, then the best over angles.
+    let pairs: Vec<(f32, f32)> = scales
+        .iter()
+        .flat_map(|&scale_x| scales.iter().map(move |&scale_y| (scale_x, scale_y)))
+        .collect();
     let padded = Padded::new(&level_image, &points, hi);
-    let per_angle: Vec<Vec<(f32, Pose)>> = angles
+    let per_angle: Vec<BestMap> = angles
         .par_iter()
         .map(|&angle_deg| {
-            let mut best = vec![empty; gw * gh];
+            let mut best = BestMap::new(gw * gh);
             if !search.limit.in_time() {
                 return best;
             }
-            for &scale_x in scales {
-                for &scale_y in scales {
-                    let pose = Pose {
-                        angle_deg,
-                        scale_x,
-                        scale_y,
-                        ..empty.1
-                    };
-                    let visit = |gx: usize, gy: usize, s: f32| {
-                        let cell = &mut best[gy * gw + gx];
-                        if s > cell.0 {
-                            *cell = (
-                                s,
-                                Pose {
-                                    x: gx as f32,
-                                    y: gy as f32,
-                                    ..pose
-                                },
-                            );
-                        }
-                    };
-                    padded.score_grid(&points, &pose, (gw, gh), visit);
-                }
+            for (pair, &(scale_x, scale_y)) in pairs.iter().enumerate() {
+                let pose = Pose {
+                    x: 0.0,
+                    y: 0.0,
+                    angle_deg,
+                    scale_x,
+                    scale_y,
+                    score: 0.0,
+                    network_score: 0.0,
+                };
+                padded.score_rows(&points, &pose, (gw, gh), |gy, row| {
+                    let cells = gy * gw..(gy + 1) * gw;
+                    keep_better(
+                        &mut best.score[cells.clone()],
+                        &mut best.which[cells],
+                        row,
+                        pair as u32,
+                    );
+                });
             }
             best
         })
         .collect();
-    let mut best = vec![empty; gw * gh];
-    for map in per_angle {
-        for (cell, candidate) in best.iter_mut().zip(map) {
-            if candidate.0 > cell.0 {
-                *cell = candidate;
+    let mut best = vec![(-1.0f32, 0u32, 0u32); gw * gh];
+    for (angle, map) in per_angle.iter().enumerate() {
+        for ((cell, &score), &pair) in best.iter_mut().zip(&map.score).zip(&map.which) {
+            if score > cell.0 {
+                *cell = (score, angle as u32, pair);
             }
         }
     }
     // Local maxima of the best-score map, strongest first.
-    let mut peaks: Vec<(f32, Pose)> = Vec::new();
+    let mut peaks: Vec<(f32, usize)> = Vec::new();
     for gy in 0..gh {
         for gx in 0..gw {
             let s = best[gy * gw + gx].0;
             let is_max = (gy.saturating_sub(1)..(gy + 2).min(gh))
                 .all(|y| (gx.saturating_sub(1)..(gx + 2).min(gw)).all(|x| best[y * gw + x].0 <= s));
             if is_max && s > 0.2 {
-                peaks.push(best[gy * gw + gx]);
+                peaks.push((s, gy * gw + gx));
             }
         }
     }
@@ -415,32 +403,69 @@ fn coarse_peaks(
     // Distinct places only: a peak within half the template's shorter side of a stronger one
     // is the same place (texture along an edge gives a ridge of peaks).
     let radius = level_template.width.min(level_template.height) as f32 / 2.0;
+    let at = |cell: usize| ((cell % gw) as f32, (cell / gw) as f32);
     let wanted = search.peaks;
-    let mut distinct: Vec<(f32, Pose)> = Vec::with_capacity(wanted);
-    for peak in peaks {
+    let mut distinct: Vec<(f32, usize)> = Vec::with_capacity(wanted);
+    for (score, cell) in peaks {
         if distinct.len() == wanted {
             break;
         }
-        let (x, y) = (peak.1.x, peak.1.y);
-        if distinct
-            .iter()
-            .all(|(_, p)| (p.x - x).hypot(p.y - y) >= radius)
-        {
-            distinct.push(peak);
+        let (x, y) = at(cell);
+        if distinct.iter().all(|&(_, other)| {
+            let (ox, oy) = at(other);
+            (ox - x).hypot(oy - y) >= radius
+        }) {
+            distinct.push((score, cell));
         }
     }
     Some(
         distinct
             .into_iter()
-            .map(|(score, coarse)| Pose {
-                // Back to full resolution: pixel centres scale as (x + 0.5)·f − 0.5.
-                x: (coarse.x + 0.5) * factor - 0.5,
-                y: (coarse.y + 0.5) * factor - 0.5,
-                score: score.clamp(0.0, 1.0),
-                ..coarse
+            .map(|(score, cell)| {
+                let (x, y) = at(cell);
+                let (_, angle, pair) = best[cell];
+                let (scale_x, scale_y) = pairs[pair as usize];
+                Pose {
+                    // Back to full resolution: pixel centres scale as (x + 0.5)·f − 0.5.
+                    x: (x + 0.5) * factor - 0.5,
+                    y: (y + 0.5) * factor - 0.5,
+                    angle_deg: angles[angle as usize],
+                    scale_x,
+                    scale_y,
+                    score: score.clamp(0.0, 1.0),
+                    network_score: 0.0,
+                }
             })
             .collect(),
     )
+}
+
+/// The best score of each coarse position over one angle's scale pairs, and which pair gave it
+/// (an index into the search's pairs).
+struct BestMap {
+    score: Vec<f32>,
+    which: Vec<u32>,
+}
+
+impl BestMap {
+    /// Nothing scored yet: every position at -1, the lowest score.
+    fn new(cells: usize) -> Self {
+        Self {
+            score: vec![-1.0; cells],
+            which: vec![0; cells],
+        }
+    }
+}
+
+/// Keeps, position by position, the better of `best` and `row` (a row of one scale pair's
+/// scores, `pair`), the earlier on a tie. Branch-free so that it vectorises.
+#[multiversion::multiversion(targets("x86_64+avx512f", "x86_64+avx2"))]
+fn keep_better(best: &mut [f32], which: &mut [u32], row: &[f32], pair: u32) {
+    for ((b, w), &s) in best.iter_mut().zip(which.iter_mut()).zip(row) {
+        let better = s > *b;
+        *b = if better { s } else { *b };
+        *w = if better { pair } else { *w };
+    }
 }
 
 /// Confirms every coarse peak (refinement on; the coarse search already chose angle and
@@ -519,15 +544,15 @@ impl Padded {
     }
 
     /// The sparse ZNCC of [`TemplatePoints::score`] for `pose`'s angle and scales at every
-    /// pixel `(gx, gy)` of the `gw x gh` image, handed to `visit(gx, gy, score)`. On integer
+    /// pixel of the `gw x gh` image, handed a row at a time to `visit(gy, scores)`. On integer
     /// positions each point's bilinear weights are the same everywhere, so they are worked out
     /// once per pose and a row of positions is one vectorised pass per point.
-    fn score_grid(
+    fn score_rows(
         &self,
         points: &TemplatePoints,
         pose: &Pose,
         (gw, gh): (usize, usize),
-        mut visit: impl FnMut(usize, usize, f32),
+        mut visit: impl FnMut(usize, &[f32]),
     ) {
         let (s, c) = pose.angle_deg.to_radians().sin_cos();
         let (ax, ay) = (pose.scale_x * c, -pose.scale_x * s);
@@ -549,6 +574,7 @@ impl Padded {
             })
             .collect();
         let (mut sum, mut sum_sq, mut dot) = (vec![0f32; gw], vec![0f32; gw], vec![0f32; gw]);
+        let mut scores = vec![0f32; gw];
         let row_width = self.width;
         for gy in 0..gh {
             sum.fill(0.0);
@@ -561,9 +587,8 @@ impl Padded {
                 len: gw,
             };
             accumulate_row(&row, &taps, &mut sum, &mut sum_sq, &mut dot);
-            for gx in 0..gw {
-                visit(gx, gy, zncc(dot[gx], sum[gx], sum_sq[gx], taps.len()));
-            }
+            zncc_row(&dot, &sum, &sum_sq, taps.len(), &mut scores);
+            visit(gy, &scores);
         }
     }
 }
@@ -613,6 +638,15 @@ fn accumulate_row(
     }
 }
 
+/// [`zncc`] of every position of a row, from its sums over the `n` points (in vectors: `zncc`
+/// has no branch).
+#[multiversion::multiversion(targets("x86_64+avx512f", "x86_64+avx2"))]
+fn zncc_row(dot: &[f32], sum: &[f32], sum_sq: &[f32], n: usize, scores: &mut [f32]) {
+    for (((score, &d), &s), &q) in scores.iter_mut().zip(dot).zip(sum).zip(sum_sq) {
+        *score = zncc(d, s, q, n);
+    }
+}
+
 #[cfg(test)]
 mod tests {
     use super::*;
@@ -647,15 +681,17 @@ mod tests {
             };
             let grid = (w, h);
             let mut visited = 0;
-            padded.score_grid(&points, &pose, grid, |gx, gy, fast| {
-                let at = Pose {
-                    x: gx as f32,
-                    y: gy as f32,
-                    ..pose
-                };
-                let slow = points.score(&image, &at);
-                assert!((fast - slow).abs() < 1e-4, "{at:?}: {fast} vs {slow}");
-                visited += 1;
+            padded.score_rows(&points, &pose, grid, |gy, row| {
+                for (gx, &fast) in row.iter().enumerate() {
+                    let at = Pose {
+                        x: gx as f32,
+                        y: gy as f32,
+                        ..pose
+                    };
+                    let slow = points.score(&image, &at);
+                    assert!((fast - slow).abs() < 1e-4, "{at:?}: {fast} vs {slow}");
+                    visited += 1;
+                }
             });
             assert_eq!(visited, grid.0 * grid.1);
         }

@@ -111,6 +111,40 @@ pub(crate) struct AlignPoints {
     /// The largest `|u|` or `|v|` (at least 1): the planes' coordinates are offsets divided by
     /// it, so that their fit is as well conditioned as the gain's.
     extent: f32,
+    /// The moments of [`Light::Planes`]' fit that depend on the points alone.
+    plane: PlaneMoments,
+}
+
+/// Sums over the template points for the planes' least squares ([`plane_fit`]), with `u`, `v`
+/// the offsets divided by the extent: `Σ m` for `m` in `[1, u, v, u², u·v, v²]`, `Σ m·T` for
+/// `m` in `[1, u, v]`, and `Σ T²`.
+struct PlaneMoments {
+    monomials: [f64; 6],
+    with_template: [f64; 3],
+    template_squares: f64,
+}
+
+impl PlaneMoments {
+    fn new(offsets: &[(f32, f32)], values: &[f32], extent: f32) -> Self {
+        let scale = f64::from(extent).recip();
+        let mut moments = Self {
+            monomials: [0.0; 6],
+            with_template: [0.0; 3],
+            template_squares: 0.0,
+        };
+        for (&(u, v), &t) in offsets.iter().zip(values) {
+            let (u, v, t) = (f64::from(u) * scale, f64::from(v) * scale, f64::from(t));
+            let monomials = [1.0, u, v, u * u, u * v, v * v];
+            for (sum, m) in moments.monomials.iter_mut().zip(monomials) {
+                *sum += m;
+            }
+            for (sum, m) in moments.with_template.iter_mut().zip(&monomials[..3]) {
+                *sum += m * t;
+            }
+            moments.template_squares += t * t;
+        }
+        moments
+    }
 }
 
 impl AlignPoints {
@@ -141,6 +175,7 @@ impl AlignPoints {
             sum,
             spread,
             extent,
+            plane: PlaneMoments::new(&offsets, &values, extent),
         }
     }
 }
@@ -257,55 +292,59 @@ fn plane_fit(points: &AlignPoints, window: &GradientWindow, map: &Affine) -> Opt
     points.lanes.samples_at(&window.image, map, &mut samples);
     let n = samples.len() as f64;
     let mean = samples.iter().map(|&i| f64::from(i)).sum::<f64>() / n.max(1.0);
-    let variance = samples
-        .iter()
-        .map(|&i| (f64::from(i) - mean).powi(2))
-        .sum::<f64>();
-    if variance <= 1e-9 {
-        return None;
-    }
     let scale = f64::from(points.extent).recip();
-    // Regressors `[I', u·I', v·I', 1, u, v]` with `I' = I − mean` and `u`, `v` scaled.
-    let regressors = |((u, v), i): ((f32, f32), f32)| -> [f64; 6] {
+    // The regressors are `x = [I', u·I', v·I', 1, u, v]` with `I' = I − mean` and `u`, `v`
+    // scaled; every entry of `Σ x·xᵀ` and `Σ x·T` is a moment `Σ m·I'²`, `Σ m·I'` or
+    // `Σ m·T·I'` of a monomial `m` of `[1, u, v, u², u·v, v²]`, or one of the points' own
+    // ([`PlaneMoments`]): one pass over the samples.
+    let (mut squares, mut linear, mut with_template) = ([0f64; 6], [0f64; 6], [0f64; 3]);
+    for (((u, v), t), &i) in points.lanes.points().zip(&samples) {
         let (u, v, i) = (
             f64::from(u) * scale,
             f64::from(v) * scale,
             f64::from(i) - mean,
         );
-        [i, u * i, v * i, 1.0, u, v]
-    };
-    let mut normal = [[0f64; 6]; 6];
-    let mut rhs = [0f64; 6];
-    for (((u, v), t), &i) in points.lanes.points().zip(&samples) {
-        let x = regressors(((u, v), i));
-        for a in 0..6 {
-            rhs[a] += x[a] * f64::from(t);
-            for b in a..6 {
-                normal[a][b] += x[a] * x[b];
-            }
+        let monomials = [1.0, u, v, u * u, u * v, v * v];
+        for ((square, line), m) in squares.iter_mut().zip(&mut linear).zip(monomials) {
+            *square += m * i * i;
+            *line += m * i;
+        }
+        let ti = f64::from(t) * i;
+        for (sum, m) in with_template.iter_mut().zip(&monomials[..3]) {
+            *sum += m * ti;
         }
     }
-    let upper = normal;
-    for (a, row) in normal.iter_mut().enumerate() {
-        for (b, entry) in row.iter_mut().enumerate().take(a) {
-            *entry = upper[b][a];
-        }
+    if squares[0] <= 1e-9 {
+        return None;
     }
+    let [a0, a1, a2, a3, a4, a5] = squares;
+    let [b0, b1, b2, b3, b4, b5] = linear;
+    let [g0, g1, g2, g3, g4, g5] = points.plane.monomials;
+    let normal = [
+        [a0, a1, a2, b0, b1, b2],
+        [a1, a3, a4, b1, b3, b4],
+        [a2, a4, a5, b2, b4, b5],
+        [b0, b1, b2, g0, g1, g2],
+        [b1, b3, b4, g1, g3, g4],
+        [b2, b4, b5, g2, g4, g5],
+    ];
+    let [t0, t1, t2] = points.plane.with_template;
+    let rhs = [
+        with_template[0],
+        with_template[1],
+        with_template[2],
+        t0,
+        t1,
+        t2,
+    ];
     let c = solve(normal, rhs)?;
     // The gain at the template's farthest corner is `c0 ± c1 ± c2` (scaled offsets within ±1).
     if c[0] <= c[1].abs() + c[2].abs() {
         return None;
     }
-    let residual: f64 = points
-        .lanes
-        .points()
-        .zip(&samples)
-        .map(|(((u, v), t), &i)| {
-            let x = regressors(((u, v), i));
-            let fitted: f64 = x.iter().zip(&c).map(|(x, c)| x * c).sum();
-            (fitted - f64::from(t)).powi(2)
-        })
-        .sum();
+    // At the least-squares solution the residual is `Σ T² − c·(Σ x·T)`.
+    let fitted: f64 = c.iter().zip(&rhs).map(|(c, r)| c * r).sum();
+    let residual = (points.plane.template_squares - fitted).max(0.0);
     // Back to raw offsets and raw image values: α·(I − mean) + β = α·I + (β − α·mean).
     let gain = [c[0], c[1] * scale, c[2] * scale];
     let offset = [
@@ -538,6 +577,48 @@ mod tests {
         for (a, b) in solved.iter().zip(&x) {
             assert!((a - b).abs() < 1e-9, "{solved:?}");
         }
+    }
+
+    #[test]
+    fn the_planes_fit_leaves_the_residual_its_gain_and_offset_leave() {
+        // The template is a crop of the scene; the scene is lit unevenly and the pose is a
+        // little off, so that the fit leaves a residual.
+        let scene = crate::refine::textured(80, 70, 3);
+        let template = GrayImage32::from_fn(24, 20, |x, y| scene.values[(25 + y) * 80 + 28 + x]);
+        let image = GrayImage32::from_fn(80, 70, |x, y| {
+            scene.values[y * 80 + x] * (0.5 + x as f32 / 80.0) + 0.1
+        });
+        let points = AlignPoints::new(&template, 0.0, 24, false);
+        let window = GradientWindow::whole(&image, 0.0);
+        let pose = Pose {
+            x: 28.0 + 11.5 + 0.3,
+            y: 25.0 + 9.5 - 0.2,
+            angle_deg: 2.0,
+            scale_x: 1.03,
+            scale_y: 0.98,
+            score: 0.0,
+            network_score: 0.0,
+        };
+        let map = Affine::of(&pose, window.x0, window.y0);
+        let fit = plane_fit(&points, &window, &map).expect("a textured patch fits");
+        let mut samples = Vec::new();
+        points.lanes.samples_at(&window.image, &map, &mut samples);
+        let plane = |c: [f32; 3], u: f32, v: f32| f64::from(c[0] + c[1] * u + c[2] * v);
+        let residual: f64 = points
+            .lanes
+            .points()
+            .zip(&samples)
+            .map(|(((u, v), t), &i)| {
+                let model = plane(fit.gain, u, v) * f64::from(i) + plane(fit.offset, u, v);
+                (model - f64::from(t)).powi(2)
+            })
+            .sum();
+        let direct = residual / points.spread;
+        assert!(
+            (fit.cost - direct).abs() < 1e-5 * direct.max(1e-3),
+            "{} vs {direct}",
+            fit.cost
+        );
     }
 
     #[test]

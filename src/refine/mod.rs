@@ -228,13 +228,18 @@ const FLAT_PATCH_SPREAD: f32 = 0.5 / 255.0;
 /// ZNCC of zero-mean, unit-norm template weights with `n` image samples, from the samples' sum,
 /// sum of squares and weighted sum (`Σ w·(I − Ī) = Σ w·I` because `Σ w = 0`). A flat patch
 /// ([`FLAT_PATCH_SPREAD`]) scores -1, the lowest score; the result is in [-1, 1].
+/// Branch-free (the flat patch's root is worked out and dropped) so that a row of positions
+/// scores in vectors (`matcher/classical.rs`).
+#[inline]
 pub(crate) fn zncc(dot: f32, sum: f32, sum_sq: f32, n: usize) -> f32 {
     let n = n as f32;
     let variance = sum_sq - sum * sum / n;
+    let similarity = (dot / variance.sqrt()).clamp(-1.0, 1.0);
     if variance <= n * FLAT_PATCH_SPREAD * FLAT_PATCH_SPREAD {
-        return -1.0;
+        -1.0
+    } else {
+        similarity
     }
-    (dot / variance.sqrt()).clamp(-1.0, 1.0)
 }
 
 /// A pose and its score under one set of [`TemplatePoints`].
