@@ -356,17 +356,8 @@ fn coarse_peaks(
             if !search.limit.in_time() {
                 return best;
             }
-            for (pair, &(scale_x, scale_y)) in pairs.iter().enumerate() {
-                let pose = Pose {
-                    x: 0.0,
-                    y: 0.0,
-                    angle_deg,
-                    scale_x,
-                    scale_y,
-                    score: 0.0,
-                    network_score: 0.0,
-                };
-                padded.score_rows(&points, &pose, (gw, gh), |gy, row| {
+            for (pair, &scales) in pairs.iter().enumerate() {
+                padded.score_rows(&points, angle_deg, scales, (gw, gh), |gy, row| {
                     let cells = gy * gw..(gy + 1) * gw;
                     keep_better(
                         &mut best.score[cells.clone()],
@@ -543,20 +534,21 @@ impl Padded {
         Self { values, width, pad }
     }
 
-    /// The sparse ZNCC of [`TemplatePoints::score`] for `pose`'s angle and scales at every
+    /// The sparse ZNCC of [`TemplatePoints::score`] at `angle_deg` and the scales at every
     /// pixel of the `gw x gh` image, handed a row at a time to `visit(gy, scores)`. On integer
     /// positions each point's bilinear weights are the same everywhere, so they are worked out
     /// once per pose and a row of positions is one vectorised pass per point.
     fn score_rows(
         &self,
         points: &TemplatePoints,
-        pose: &Pose,
+        angle_deg: f32,
+        (scale_x, scale_y): (f32, f32),
         (gw, gh): (usize, usize),
         mut visit: impl FnMut(usize, &[f32]),
     ) {
-        let (s, c) = pose.angle_deg.to_radians().sin_cos();
-        let (ax, ay) = (pose.scale_x * c, -pose.scale_x * s);
-        let (bx, by) = (pose.scale_y * s, pose.scale_y * c);
+        let (s, c) = angle_deg.to_radians().sin_cos();
+        let (ax, ay) = (scale_x * c, -scale_x * s);
+        let (bx, by) = (scale_y * s, scale_y * c);
         let taps: Vec<PointTap> = points
             .points()
             .map(|((u, v), w)| {
@@ -681,7 +673,7 @@ mod tests {
             };
             let grid = (w, h);
             let mut visited = 0;
-            padded.score_rows(&points, &pose, grid, |gy, row| {
+            padded.score_rows(&points, angle_deg, (scale_x, scale_y), grid, |gy, row| {
                 for (gx, &fast) in row.iter().enumerate() {
                     let at = Pose {
                         x: gx as f32,
