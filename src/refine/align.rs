@@ -133,8 +133,8 @@ impl PlaneMoments {
             template_squares: 0.0,
         };
         for (&(u, v), &t) in offsets.iter().zip(values) {
-            let (u, v, t) = (f64::from(u) * scale, f64::from(v) * scale, f64::from(t));
-            let monomials = [1.0, u, v, u * u, u * v, v * v];
+            let monomials = plane_monomials(u, v, scale);
+            let t = f64::from(t);
             for (sum, m) in moments.monomials.iter_mut().zip(monomials) {
                 *sum += m;
             }
@@ -145,6 +145,12 @@ impl PlaneMoments {
         }
         moments
     }
+}
+
+/// `[1, u, v, u², u·v, v²]` of the offset `(u, v)` times `scale`: the planes' monomials.
+fn plane_monomials(u: f32, v: f32, scale: f64) -> [f64; 6] {
+    let (u, v) = (f64::from(u) * scale, f64::from(v) * scale);
+    [1.0, u, v, u * u, u * v, v * v]
 }
 
 impl AlignPoints {
@@ -299,15 +305,12 @@ fn plane_fit(points: &AlignPoints, window: &GradientWindow, map: &Affine) -> Opt
     // ([`PlaneMoments`]): one pass over the samples.
     let (mut squares, mut linear, mut with_template) = ([0f64; 6], [0f64; 6], [0f64; 3]);
     for (((u, v), t), &i) in points.lanes.points().zip(&samples) {
-        let (u, v, i) = (
-            f64::from(u) * scale,
-            f64::from(v) * scale,
-            f64::from(i) - mean,
-        );
-        let monomials = [1.0, u, v, u * u, u * v, v * v];
+        let monomials = plane_monomials(u, v, scale);
+        let i = f64::from(i) - mean;
         for ((square, line), m) in squares.iter_mut().zip(&mut linear).zip(monomials) {
-            *square += m * i * i;
-            *line += m * i;
+            let term = m * i;
+            *line += term;
+            *square += term * i;
         }
         let ti = f64::from(t) * i;
         for (sum, m) in with_template.iter_mut().zip(&monomials[..3]) {
