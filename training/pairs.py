@@ -1,9 +1,10 @@
 """Training pairs cut on the device, by the paper's Algorithm 1 as `src/synth` cuts them.
 
 The photos are decoded once and held on the device as one uint8 tensor; each batch draws boxes,
-angles, scales and window positions with a `torch.Generator`, cuts every search window with one
-`grid_sample` (bilinear, pixel centres at integers, as `src/imaging/rgb.rs` reads photos) and
-every template with an exact antialiased-bilinear resize (the filter of `fast_image_resize` and
+angles, scales and window positions with a `torch.Generator`, samples every search window
+straight from that tensor (`PhotoBank.sample`: bilinear, pixel centres at integers, as
+`src/imaging/rgb.rs` reads photos; only the taps a window needs are read, never a float copy
+of a pair's whole photo) and cuts every template with an exact antialiased-bilinear resize (the filter of `fast_image_resize` and
 PIL that `resize_rgb` uses), rejects what `src/synth` rejects (a box that does not fit, a window with
 blank border, a template flatter than `min_structure`), jitters the searches as
 `src/train/jitter.rs` does and renders the labels as `src/train/labels.rs` does. No CPU data
@@ -38,11 +39,61 @@ class PhotoBank:
         for i, p in enumerate(photos):
             bank[i, :, : p.shape[0], : p.shape[1]] = torch.from_numpy(p).permute(2, 0, 1)
         self.pixels = bank.to(device)
+        # The same pixels channels-last, one row of three per pixel, and a last row of zeros
+        # that taps outside the bank read: what `sample` and `box` gather.
+        self.rows = torch.cat([self.pixels.permute(0, 2, 3, 1).reshape(-1, 3),
+                               torch.zeros((1, 3), dtype=torch.uint8, device=self.pixels.device)])
+        self.zero_row = self.rows.shape[0] - 1
         self.sizes = torch.tensor([[p.shape[1], p.shape[0]] for p in photos], device=device)
         self.device = torch.device(device)
 
     def __len__(self):
         return self.pixels.shape[0]
+
+    def sample(self, photo, px, py, border=False):
+        """Bilinear RGB in [0, 1] at photo positions (`px`, `py`: [k, ...], pixel centres at
+        integers) of photo `photo[k]`, read straight from the uint8 bank: four row gathers of
+        the taps a window needs, instead of a float copy of every pair's whole photo (up to
+        640x640x3 a pair: what `grid_sample` needs as its input, and that copy and its
+        conversion were most of the cutting's time). The same numbers as `grid_sample(...,
+        mode="bilinear", align_corners=True)` over the padded bank: a tap outside it reads 0,
+        or with `border` the position is clamped to it first (`padding_mode="border"`).
+        Returns [k, 3, ...]."""
+        n, c, h, w = self.pixels.shape
+        if border:
+            px = px.clamp(0, w - 1)
+            py = py.clamp(0, h - 1)
+        x0 = torch.floor(px)
+        y0 = torch.floor(py)
+        fx = (px - x0).unsqueeze(-1)
+        fy = (py - y0).unsqueeze(-1)
+        x0 = x0.long()
+        y0 = y0.long()
+        base = photo.view(-1, *([1] * (px.dim() - 1))).long() * h
+
+        def tap(x, y):
+            index = (base + y) * w + x
+            outside = (x < 0) | (x >= w) | (y < 0) | (y >= h)
+            index = index.masked_fill(outside, self.zero_row)
+            return self.rows.index_select(0, index.view(-1)).view(*index.shape, c).float()
+
+        top = torch.lerp(tap(x0, y0), tap(x0 + 1, y0), fx)
+        bottom = torch.lerp(tap(x0, y0 + 1), tap(x0 + 1, y0 + 1), fx)
+        # Channels-last in memory, as the network takes its input on the GPU.
+        return (torch.lerp(top, bottom, fy) * (1 / 255.0)).movedim(-1, 1)
+
+    def box(self, photo, x0, y0, width, height):
+        """Each photo's pixels in the box (x0, y0, up to `width` x `height`; [k] each), as
+        [k, 3, height, width] in [0, 1], zero beyond the bank (one gather, no photo copied)."""
+        n, c, h, w = self.pixels.shape
+        jj, ii = torch.meshgrid(torch.arange(height, device=self.device),
+                                torch.arange(width, device=self.device), indexing="ij")
+        x = x0.long().view(-1, 1, 1) + ii
+        y = y0.long().view(-1, 1, 1) + jj
+        index = (photo.long().view(-1, 1, 1) * h + y) * w + x
+        index = index.masked_fill((x >= w) | (y >= h), self.zero_row)
+        values = self.rows.index_select(0, index.view(-1)).view(*index.shape, c)
+        return (values.float() * (1 / 255.0)).movedim(-1, 1).contiguous()
 
 
 @dataclass
@@ -161,14 +212,11 @@ def cut_pairs(bank, batch, level="S1.5", template_size=(36, 36), search_side=224
         photo, pw, ph, bw, bh, angle = photo[idx], pw[idx], ph[idx], bw[idx], bh[idx], angle[idx]
         x0, y0, xc, yc = x0[idx], y0[idx], xc[idx], yc[idx]
         sx, sy = bw / tw, bh / th
-        pixels = bank.pixels[photo].float() / 255.0  # [k, 3, Hmax, Wmax]
-        hmax, wmax = pixels.shape[-2:]
-        templates = _cut_templates(pixels, x0, y0, bw, bh, tw, th)
+        templates = _cut_templates(bank, photo, x0, y0, bw, bh, tw, th)
         good = structure(templates) >= min_structure
         if not good.any():
             continue
         sel = good.nonzero().squeeze(1)
-        pixels = pixels[sel]
         templates = templates[sel]
         photo, bw, bh, angle, x0, y0, xc, yc, sx, sy = (
             t[sel] for t in (photo, bw, bh, angle, x0, y0, xc, yc, sx, sy))
@@ -178,9 +226,7 @@ def cut_pairs(bank, batch, level="S1.5", template_size=(36, 36), search_side=224
             torch.arange(search_side, device=device, dtype=torch.float32), indexing="ij")
         px, py = _photo_coords((xc[:, None, None], yc[:, None, None]), angle[:, None, None],
                                (cx[:, None, None], cy[:, None, None]), grid_i, grid_j)
-        grid = torch.stack([px / (wmax - 1) * 2 - 1, py / (hmax - 1) * 2 - 1], dim=-1)
-        searches = F.grid_sample(pixels, grid, mode="bilinear", padding_mode="zeros",
-                                 align_corners=True)
+        searches = bank.sample(photo, px, py)
         truth = torch.stack([xc, yc, angle, sx, sy], dim=1)
         boxes = torch.stack([x0, y0, bw, bh], dim=1)
         kept.append((templates, searches, truth, boxes, photo))
@@ -280,10 +326,14 @@ def add_crowd(bank, pairs, share, gen=None, max_extra=5, spread=0.15, tries=12, 
     rows = present[:, 1:].any(1).nonzero().squeeze(1)
     if rows.numel() == 0:
         return searches, instances, present
-    pixels = bank.pixels[pairs.photos[rows]].float() / 255.0
-    hmax, wmax = pixels.shape[-2:]
     x0, y0, bw, bh = (pairs.boxes[rows, i].view(-1, 1, 1) for i in range(4))
     cx, cy = x0 + (bw - 1) / 2, y0 + (bh - 1) / 2
+    # The copies show only the part's box: that box (and a pixel around it, for the bilinear
+    # taps) is all of the photo read, not the whole photo per crowded pair.
+    _, _, hmax, wmax = bank.pixels.shape
+    ox, oy = (x0 - 1).clamp(min=0), (y0 - 1).clamp(min=0)
+    span_w, span_h = int(bw.max().item()) + 2, int(bh.max().item()) + 2
+    patch = bank.box(pairs.photos[rows], ox.view(-1), oy.view(-1), span_w, span_h)
     jj, ii = torch.meshgrid(torch.arange(side, device=device, dtype=torch.float32),
                             torch.arange(side, device=device, dtype=torch.float32), indexing="ij")
     out = searches[rows]
@@ -301,28 +351,24 @@ def add_crowd(bank, pairs, share, gen=None, max_extra=5, spread=0.15, tries=12, 
         inside = (u.abs() <= w / 2) & (v.abs() <= h / 2) & here.view(-1, 1, 1)
         px = cx + u * bw / w
         py = cy + v * bh / h
-        grid = torch.stack([px / (wmax - 1) * 2 - 1, py / (hmax - 1) * 2 - 1], dim=-1)
-        copy = F.grid_sample(pixels, grid, mode="bilinear", padding_mode="border",
+        # As grid_sample over the whole bank with border padding: positions clamped to it.
+        px = px.clamp(0, wmax - 1) - ox
+        py = py.clamp(0, hmax - 1) - oy
+        grid = torch.stack([px / (span_w - 1) * 2 - 1, py / (span_h - 1) * 2 - 1], dim=-1)
+        copy = F.grid_sample(patch, grid, mode="bilinear", padding_mode="zeros",
                              align_corners=True)
         out = torch.where(inside[:, None], copy, out)
     searches[rows] = out
     return searches, instances, present
 
 
-def _cut_templates(pixels, x0, y0, bw, bh, tw, th):
-    """Box (x0, y0, bw, bh) of each photo resized to tw x th (antialiased bilinear)."""
-    k = pixels.shape[0]
+def _cut_templates(bank, photo, x0, y0, bw, bh, tw, th):
+    """Box (x0, y0, bw, bh) of each photo `photo[k]` resized to tw x th (antialiased
+    bilinear)."""
     span_w = int(bw.max().item())
     span_h = int(bh.max().item())
-    hmax, wmax = pixels.shape[-2:]
-    # The box's pixels (integer positions: grid_sample reads them exactly), zero beyond it.
-    jj, ii = torch.meshgrid(torch.arange(span_h, device=pixels.device, dtype=torch.float32),
-                            torch.arange(span_w, device=pixels.device, dtype=torch.float32),
-                            indexing="ij")
-    gx = (x0[:, None, None] + ii) / (wmax - 1) * 2 - 1
-    gy = (y0[:, None, None] + jj) / (hmax - 1) * 2 - 1
-    patch = F.grid_sample(pixels, torch.stack([gx, gy], -1), mode="nearest",
-                          padding_mode="zeros", align_corners=True)  # [k, 3, span_h, span_w]
+    # The box's pixels (beyond a narrower box, the photo's next pixels: their weights are 0).
+    patch = bank.box(photo, x0, y0, span_w, span_h)  # [k, 3, span_h, span_w]
     wx = resize_weights(bw.long(), tw, span_w)  # [k, tw, span_w]
     wy = resize_weights(bh.long(), th, span_h)  # [k, th, span_h]
     # Horizontal pass then vertical, as the separable convolution does.
