@@ -91,9 +91,10 @@ def test_the_bank_samples_as_grid_sample_over_the_whole_photos(bank):
     expected = torch.nn.functional.grid_sample(pixels, grid, mode="bilinear",
                                                padding_mode="zeros", align_corners=True)
     torch.testing.assert_close(b.sample(photo, px, py), expected[:, :, 0], atol=2e-5, rtol=0)
-    box = b.box(photo, torch.tensor([0, 5, w - 3, 7, 1]), torch.tensor([2, 0, 4, h - 2, 9]), 6, 4)
-    for i in range(k):
-        x0, y0 = [(0, 2), (5, 0), (w - 3, 4), (7, h - 2), (1, 9)][i]
+    corners = [(0, 2), (5, 0), (w - 3, 4), (7, h - 2), (1, 9)]  # one per photo, two at the edges
+    box = b.box(photo, torch.tensor([x for x, _ in corners]), torch.tensor([y for _, y in corners]),
+                6, 4)
+    for i, (x0, y0) in enumerate(corners):
         part = pixels[i, :, y0:y0 + 4, x0:x0 + 6]
         torch.testing.assert_close(box[i, :, :part.shape[1], :part.shape[2]], part, atol=1e-6, rtol=0)
         assert box[i, :, part.shape[1]:, :].abs().sum() == 0 and box[i, :, :, part.shape[2]:].abs().sum() == 0
