@@ -215,20 +215,33 @@ mod tests {
         })
     }
 
+    /// The noise level of white noise of `sigma`, read from a larger image than a template.
+    fn noise_of(sigma: f32) -> NoiseLevel {
+        NoiseLevel::estimate(&with_noise(&smooth(200, 160, 0.12), sigma))
+    }
+
+    /// `template` itself under white noise of `sigma`, read at its own pose: the plain ZNCC and
+    /// the similarity with that noise taken out.
+    fn plain_and_corrected(template: &GrayImage32, sigma: f32) -> (f32, f32) {
+        let noisy = with_noise(template, sigma);
+        let pose = at_centre(template);
+        let support = TemplatePoints::support(template);
+        let corrected = NoisePoints::new(template)
+            .read(
+                &support.samples(&noisy, &pose),
+                &noisy,
+                &pose,
+                noise_of(sigma),
+            )
+            .expect("a noisy part is no flat patch")
+            .similarity;
+        (support.score(&noisy, &pose), corrected)
+    }
+
     #[test]
     fn a_grain_part_under_noise_stronger_than_its_contrast_reads_as_a_clean_one() {
         // Noise 1.6 times the part's own contrast: a ZNCC near 0.5, which 1.5x could not lift.
-        let template = grain(36, 36, 0.025);
-        let noisy = with_noise(&template, 0.04);
-        let noise = NoiseLevel::estimate(&with_noise(&smooth(200, 160, 0.12), 0.04));
-        let pose = at_centre(&template);
-        let support = TemplatePoints::support(&template);
-        let points = NoisePoints::new(&template);
-        let zncc = support.score(&noisy, &pose);
-        let corrected = points
-            .read(&support.samples(&noisy, &pose), &noisy, &pose, noise)
-            .unwrap()
-            .similarity;
+        let (zncc, corrected) = plain_and_corrected(&grain(36, 36, 0.025), 0.04);
         assert!(zncc < 0.6, "ZNCC {zncc}");
         assert!(corrected > 0.9, "corrected {corrected} (ZNCC {zncc})");
     }
@@ -247,18 +260,16 @@ mod tests {
     #[test]
     fn a_noisy_part_reads_as_a_clean_one_and_an_unrelated_patch_stays_unrelated() {
         let template = smooth(36, 36, 0.12);
-        let noisy = with_noise(&template, 0.04);
-        let noise = NoiseLevel::estimate(&with_noise(&smooth(200, 160, 0.12), 0.04));
+        let (zncc, corrected) = plain_and_corrected(&template, 0.04);
+        assert!(zncc < 0.85, "ZNCC {zncc}");
+        assert!(corrected > 0.95, "corrected {corrected} (ZNCC {zncc})");
+        let noise = noise_of(0.04);
         let pose = at_centre(&template);
         let support = TemplatePoints::support(&template);
         let points = NoisePoints::new(&template);
         let read = |image: &GrayImage32, noise| {
             points.read(&support.samples(image, &pose), image, &pose, noise)
         };
-        let zncc = support.score(&noisy, &pose);
-        let corrected = read(&noisy, noise).unwrap().similarity;
-        assert!(zncc < 0.85, "ZNCC {zncc}");
-        assert!(corrected > 0.95, "corrected {corrected} (ZNCC {zncc})");
         // Without noise in the image, nothing changes.
         let clean = read(&template, NoiseLevel { variance: 0.0 }).unwrap();
         assert!(clean.similarity > 0.999 && clean.noise_spread == 0.0);
