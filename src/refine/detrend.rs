@@ -96,6 +96,19 @@ impl PlaneFreePoints {
         (dot / variance.sqrt()).clamp(-1.0, 1.0) as f32
     }
 
+    /// The plane-free weights (unit norm, orthogonal to every plane over the offsets), one per
+    /// point in the points' order.
+    pub(crate) fn weights(&self) -> &[f64] {
+        &self.weights
+    }
+
+    /// `(AᵀA)⁻¹` of the plane's least-squares fit over the points' rows `(1, u, v)`: with the
+    /// moments `m = (Σ I, Σ u·I, Σ v·I)` of samples `I`, `mᵀ (AᵀA)⁻¹ m` is what their plane
+    /// explains of `Σ I²` (what [`PlaneFreePoints::score`] takes out).
+    pub(crate) fn inverse_normal(&self) -> &[[f64; 3]; 3] {
+        &self.inverse_normal
+    }
+
     /// `values` (one per point) less their least-squares plane over the offsets.
     fn without_plane(&self, values: &[f64]) -> Vec<f64> {
         let mut moments = [0f64; 3];

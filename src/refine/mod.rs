@@ -223,7 +223,7 @@ impl PoseSamples {
 /// counts as flat: half a grey level of an 8-bit image. A flat patch has nothing to match, and
 /// in f32 its variance is lost in the rounding of the sums: before this floor, a plain region
 /// of a photo could score above 1 against any template and crowd out the object.
-const FLAT_PATCH_SPREAD: f32 = 0.5 / 255.0;
+pub(crate) const FLAT_PATCH_SPREAD: f32 = 0.5 / 255.0;
 
 /// ZNCC of zero-mean, unit-norm template weights with `n` image samples, from the samples' sum,
 /// sum of squares and weighted sum (`Σ w·(I − Ī) = Σ w·I` because `Σ w = 0`). A flat patch
