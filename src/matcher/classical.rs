@@ -904,6 +904,15 @@ mod tests {
         );
     }
 
+    /// A 36x36 template of what `scene` shows under `truth`: the part the search should find
+    /// there.
+    fn part_at(truth: &Pose, scene: impl Fn(f32, f32) -> f32) -> GrayImage32 {
+        GrayImage32::from_fn(36, 36, |u, v| {
+            let (x, y) = truth.map_point(u as f32 - 17.5, v as f32 - 17.5);
+            scene(x, y)
+        })
+    }
+
     #[test]
     fn the_fallback_proposes_a_part_stretched_on_one_axis_at_a_stretched_scale_pair() {
         // Value noise on a 4 px lattice: detail that a scale 1.4 off on one axis spoils.
@@ -919,10 +928,7 @@ mod tests {
             score: 1.0,
             network_score: 0.0,
         };
-        let template = GrayImage32::from_fn(36, 36, |u, v| {
-            let (x, y) = truth.map_point(u as f32 - 17.5, v as f32 - 17.5);
-            texture(x, y)
-        });
+        let template = part_at(&truth, texture);
         let found = fallback_candidates(&template, &image, &MatchOptions::default())
             .expect("a 224x224 search with a 36x36 template fits the fallback's budget");
         let nearest = found
@@ -960,10 +966,7 @@ mod tests {
             score: 1.0,
             network_score: 0.0,
         };
-        let template = GrayImage32::from_fn(36, 36, |u, v| {
-            let (x, y) = truth.map_point(u as f32 - 17.5, v as f32 - 17.5);
-            scene(x, y)
-        });
+        let template = part_at(&truth, scene);
         let lit = GrayImage32::from_fn(224, 224, |x, y| {
             let gain = 1.3 - 0.9 * (x as f32 + y as f32) / 446.0;
             (scene(x as f32, y as f32) * gain).clamp(0.0, 1.0)
