@@ -369,17 +369,50 @@ def _cut_templates(bank, photo, x0, y0, bw, bh, tw, th):
     return torch.einsum("kcho,kph->kcpo", horizontal, wy)
 
 
+# src/train/jitter.rs's shares and ranges (the camera conditions of issue 41).
+GAMMA_SHARE, RAMP_SHARE, BLUR_SHARE, NOISE_SHARE = 0.3, 0.3, 0.3, 0.5
+GAMMA_RANGE = (0.5, 2.2)
+RAMP_DARK_GAIN, RAMP_BRIGHT_GAIN = (0.4, 0.9), (1.0, 1.3)
+MAX_NOISE_SIGMA = 15.0 / 255.0
+
+
+def light_ramp(shape, direction, dark_gain, bright_gain, device):
+    """src/train/jitter.rs `LightRamp`: per image [B, 1, H, W] gains falling linearly from
+    `bright_gain` at the image's extreme point towards `direction` (radians, x right, y down)
+    to `dark_gain` at the opposite one."""
+    b, _, h, w = shape
+    yy, xx = torch.meshgrid(torch.arange(h, device=device, dtype=torch.float32),
+                            torch.arange(w, device=device, dtype=torch.float32), indexing="ij")
+    dx, dy = torch.cos(direction).view(b, 1, 1), torch.sin(direction).view(b, 1, 1)
+    extent = (dx.abs() * (w - 1) + dy.abs() * (h - 1)).clamp(min=1.0)
+    toward = ((xx - (w - 1) / 2) * dx + (yy - (h - 1) / 2) * dy) / extent + 0.5
+    gain = dark_gain.view(b, 1, 1) + (bright_gain - dark_gain).view(b, 1, 1) * toward
+    return gain[:, None]
+
+
 def jitter(searches, gen=None):
-    """src/train/jitter.rs: brightness ±0.1, contrast 0.7-1.3 about the mean, with probability
-    0.3 a [1 2 1]/4 blur (clamped borders), with probability 0.5 Gaussian noise of sigma up to
-    0.03; clamped to [0, 1]."""
+    """src/train/jitter.rs, the same steps in the same order: brightness ±0.1, contrast 0.7-1.3
+    about the mean; with probability 0.3 a gamma (log-uniform 0.5-2.2, values clamped to [0, 1]
+    first); with probability 0.3 light falling linearly across the image in a random direction
+    (gain 1.0-1.3 at the bright end, 0.4-0.9 at the dark end); with probability 0.3 a [1 2 1]/4
+    blur (clamped borders); with probability 0.5 Gaussian noise of sigma up to 15 grey levels;
+    clamped to [0, 1]."""
     b = searches.shape[0]
     device = searches.device
     brightness = _uniform(b, -0.1, 0.1, gen, device).view(b, 1, 1, 1)
     contrast = _uniform(b, 0.7, 1.3, gen, device).view(b, 1, 1, 1)
     mean = searches.mean(dim=(1, 2, 3), keepdim=True)
     x = (searches - mean) * contrast + mean + brightness
-    blur = (torch.rand(b, generator=gen, device=device) < 0.3).view(b, 1, 1, 1)
+    gamma_on = (torch.rand(b, generator=gen, device=device) < GAMMA_SHARE).view(b, 1, 1, 1)
+    gamma = torch.exp(_uniform(b, math.log(GAMMA_RANGE[0]), math.log(GAMMA_RANGE[1]), gen,
+                               device)).view(b, 1, 1, 1)
+    x = torch.where(gamma_on, x.clamp(0.0, 1.0) ** gamma, x)
+    ramp_on = (torch.rand(b, generator=gen, device=device) < RAMP_SHARE).view(b, 1, 1, 1)
+    gain = light_ramp(x.shape, _uniform(b, 0.0, 2 * math.pi, gen, device),
+                      _uniform(b, *RAMP_DARK_GAIN, gen, device),
+                      _uniform(b, *RAMP_BRIGHT_GAIN, gen, device), device)
+    x = torch.where(ramp_on, x * gain.to(x.dtype), x)
+    blur = (torch.rand(b, generator=gen, device=device) < BLUR_SHARE).view(b, 1, 1, 1)
     kernel = torch.tensor([0.25, 0.5, 0.25], device=device, dtype=x.dtype)
     c = x.shape[1]
     blurred = F.conv2d(F.pad(x, (1, 1, 0, 0), mode="replicate"),
@@ -387,8 +420,8 @@ def jitter(searches, gen=None):
     blurred = F.conv2d(F.pad(blurred, (0, 0, 1, 1), mode="replicate"),
                        kernel.view(1, 1, 3, 1).repeat(c, 1, 1, 1), groups=c)
     x = torch.where(blur, blurred, x)
-    noisy = (torch.rand(b, generator=gen, device=device) < 0.5).view(b, 1, 1, 1)
-    sigma = _uniform(b, 0.0, 0.03, gen, device).view(b, 1, 1, 1)
+    noisy = (torch.rand(b, generator=gen, device=device) < NOISE_SHARE).view(b, 1, 1, 1)
+    sigma = _uniform(b, 0.0, MAX_NOISE_SIGMA, gen, device).view(b, 1, 1, 1)
     noise = torch.randn(x.shape, generator=gen, device=device, dtype=x.dtype)
     x = x + noisy * sigma * noise
     return x.clamp(0.0, 1.0)

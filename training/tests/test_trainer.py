@@ -153,6 +153,39 @@ def test_labels_follow_the_pose():
     assert maps[1, 2, 32, 32] == 1.0
 
 
+def test_a_ramp_of_light_spans_its_gains_as_src_train_draws_it():
+    """The numbers of jitter.rs's `a_ramp_of_light_spans_its_gains_across_the_image_in_its_
+    direction`: a 9x5 grey image of 0.5, gains 0.4 -> 1.2."""
+    grey = torch.full((2, 3, 5, 9), 0.5)
+    gain = P.light_ramp(grey.shape, torch.tensor([0.0, 0.75 * math.pi]),
+                        torch.tensor([0.4, 0.4]), torch.tensor([1.2, 1.2]), "cpu")
+    lit = grey * gain
+    assert abs(lit[0, 1, 2, 0].item() - 0.2) < 1e-5
+    assert abs(lit[0, 1, 0, 8].item() - 0.6) < 1e-5
+    assert abs(lit[0, 1, 4, 4].item() - 0.4) < 1e-5
+    assert abs(lit[1, 1, 4, 0].item() - 0.6) < 1e-5
+    assert abs(lit[1, 1, 0, 8].item() - 0.2) < 1e-5
+
+
+def test_the_jitter_draws_gammas_ramps_and_noise_at_src_trains_shares():
+    """jitter.rs's `over_many_images_...` on a batch: the same measures, the same bounds."""
+    gen = torch.Generator().manual_seed(0)
+    x = P.jitter(torch.full((2000, 3, 32, 32), 0.5), gen)[:, 0]
+    across = (x[:, :, :16].mean(dim=(1, 2)) - x[:, :, 16:].mean(dim=(1, 2))).abs()
+    down = (x[:, :16].mean(dim=(1, 2)) - x[:, 16:].mean(dim=(1, 2))).abs()
+    ramps = (torch.maximum(across, down) > 0.03).float().mean().item()
+    step = (x[:, 7, 1:] - x[:, 7, :-1]).abs().mean(dim=1)
+    noisy = (step > 0.01).float().mean().item()
+    assert 0.2 < ramps < 0.36, ramps
+    assert 0.35 < noisy < 0.55, noisy
+    # A gamma moves a flat image's level without spreading it: of the images with no ramp,
+    # levels beyond what brightness alone (0.5 +- 0.1) reaches.
+    flat = torch.maximum(across, down) < 0.01
+    moved = ((x.mean(dim=(1, 2)) - 0.5).abs() > 0.12) & flat
+    assert 0.1 < moved.float().sum().item() / flat.float().sum().item() < 0.3
+    assert x.min() >= 0.0 and x.max() <= 1.0
+
+
 def test_crowded_pairs_paste_whole_disjoint_copies_and_label_every_one(bank):
     photos, b = bank
     gen = torch.Generator().manual_seed(11)
