@@ -4,7 +4,8 @@
 //! that genuinely matches at least as well as the truth — with the rank and heatmap value of
 //! the object's peak among all peaks; with `--readings`, what each reading made of the right
 //! answers that scored under 0.9. Mirrors `verify_candidates` (the second screen on the
-//! light-evened level where no first screen reaches 0.97, the best 20 screens ranked by their
+//! light-evened level, and for a fine texture at full resolution as well, where no first
+//! screen reaches 0.97, the best 20 screens ranked by their
 //! score, `RANKED_BEYOND_SURVIVORS`, the best two confirmed).
 //! Use it on tuning photos, never on evaluation photos:
 //!
@@ -123,8 +124,9 @@ fn main() {
                 .collect();
         // One instance wanted, as in `posematch eval`'s pairs.
         let light = if wants_second_screen(screened.iter().map(|s| &s.2), 1) {
+            let twin = verifier.full_resolution_twin();
             for (_, candidate, screen) in &mut screened {
-                *screen = verifier.screen_evened(candidate, *screen);
+                *screen = verifier.screen_evened_also_at(twin.as_ref(), candidate, *screen);
             }
             Light::Planes
         } else {

@@ -653,3 +653,94 @@ fn a_noisy_fine_grain_part_is_screened_from_the_networks_own_pose() {
         .count();
     assert!(screened_right >= 22, "{screened_right} of {trials}");
 }
+
+/// A part of fine grain under light falling across the frame (uneven-light): the second
+/// screen, on the halved level with the light evened out, works on grain half averaged away;
+/// the same second screen at full resolution keeps it ([`Verifier::screen_evened_also_at`]).
+/// Of these 48 parts, with the network's centre 3 px and its angle 20° off, the halved level
+/// alone screens 28 to the part, with the full level beside it 31.
+#[test]
+fn a_fine_grain_part_under_uneven_light_is_screened_also_at_full_resolution() {
+    let trials = 48;
+    let (mut halved_right, mut both_right) = (0, 0);
+    for k in 0..trials {
+        let grain = texture_in_band(240, 240, 300 + k, 0.5..1.5);
+        let image = GrayImage32::from_fn(240, 240, |x, y| {
+            0.5 + 0.4 * (grain.values[y * 240 + x] - 0.5)
+        });
+        let truth = Pose {
+            x: 120.0 + (3.1 * k as f32) % 20.0,
+            y: 110.0 - (2.3 * k as f32) % 20.0,
+            angle_deg: crate::geometry::wrap_angle_deg(-170.0 + 29.0 * k as f32),
+            scale_x: 1.0 + 0.01 * k as f32,
+            scale_y: 1.1,
+            score: 1.0,
+            network_score: 0.0,
+        };
+        let template = cut_template(&image, &truth);
+        let lit = under_condition(&image, Condition::UnevenLight);
+        let direction = k as f32 * 1.1;
+        let candidate = Pose {
+            x: truth.x + 3.0 * direction.cos(),
+            y: truth.y + 3.0 * direction.sin(),
+            angle_deg: crate::geometry::wrap_angle_deg(truth.angle_deg + 20.0),
+            ..truth
+        };
+        let verifier = Verifier::new(&template, &lit, None, |_| true);
+        let twin = verifier.full_resolution_twin();
+        assert!(twin.is_some(), "a fine grain in a clean image has a twin");
+        let first = verifier.screen(&candidate);
+        let right = |p: &Pose| {
+            (p.x - truth.x).hypot(p.y - truth.y) < 1.5
+                && angle_distance_deg(p.angle_deg, truth.angle_deg) < 3.0
+        };
+        halved_right += usize::from(right(&verifier.screen_evened(&candidate, first).pose));
+        both_right += usize::from(right(
+            &verifier
+                .screen_evened_also_at(twin.as_ref(), &candidate, first)
+                .pose,
+        ));
+    }
+    assert!(
+        both_right >= halved_right + 2,
+        "{halved_right} → {both_right} of {trials}"
+    );
+}
+
+/// The full-resolution second screen is for fine textures in images without noise: a smooth
+/// template, or a noisy image (noise-15), screens on the halved level only.
+#[test]
+fn the_full_resolution_second_screen_is_for_fine_textures_without_noise() {
+    let grain = texture_in_band(240, 240, 7, 0.5..1.5);
+    let grain = GrayImage32::from_fn(240, 240, |x, y| {
+        0.5 + 0.4 * (grain.values[y * 240 + x] - 0.5)
+    });
+    let smooth_image = texture(240, 240, 7);
+    let truth = Pose {
+        x: 120.0,
+        y: 110.0,
+        angle_deg: 30.0,
+        scale_x: 1.0,
+        scale_y: 1.1,
+        score: 1.0,
+        network_score: 0.0,
+    };
+    let fine = cut_template(&grain, &truth);
+    let smooth = cut_template(&smooth_image, &truth);
+    assert!(
+        Verifier::new(&fine, &grain, None, |_| true)
+            .full_resolution_twin()
+            .is_some()
+    );
+    let noisy = under_condition(&grain, Condition::Noise15);
+    assert!(
+        Verifier::new(&fine, &noisy, None, |_| true)
+            .full_resolution_twin()
+            .is_none()
+    );
+    assert!(
+        Verifier::new(&smooth, &smooth_image, None, |_| true)
+            .full_resolution_twin()
+            .is_none()
+    );
+}
