@@ -611,6 +611,28 @@ fn a_part_under_light_falling_across_it_scores_above_the_default_min_score() {
     assert!(verifier.score_at(&truth) >= 0.9);
 }
 
+/// A 240x240 grain of frequencies in `band` (radians per pixel) around mid-grey, its spread
+/// scaled by `contrast`.
+fn grain(seed: u64, band: std::ops::Range<f32>, contrast: f32) -> GrayImage32 {
+    let texture = texture_in_band(240, 240, seed, band);
+    GrayImage32::from_fn(240, 240, |x, y| {
+        0.5 + contrast * (texture.values[y * 240 + x] - 0.5)
+    })
+}
+
+/// The `k`-th part's pose in a [`grain`] image: centre, angle and scales change with `k`.
+fn grain_part_pose(k: u64) -> Pose {
+    Pose {
+        x: 120.0 + (3.1 * k as f32) % 20.0,
+        y: 110.0 - (2.3 * k as f32) % 20.0,
+        angle_deg: crate::geometry::wrap_angle_deg(-170.0 + 29.0 * k as f32),
+        scale_x: 1.0 + 0.01 * k as f32,
+        scale_y: 1.1,
+        score: 1.0,
+        network_score: 0.0,
+    }
+}
+
 /// A part of fine grain under noise (noise-15): on the screening level, where the grain is
 /// half averaged away, the grid of angles scored at a candidate's centre a few pixels off can
 /// put a wrong angle first, and the alignment from there settles on it. A network candidate
@@ -622,19 +644,8 @@ fn a_noisy_fine_grain_part_is_screened_from_the_networks_own_pose() {
     let screened_right = (0..trials)
         .filter(|&k| {
             // Grain of two to twenty pixels at about twice the noise's spread.
-            let grain = texture_in_band(240, 240, 100 + k, 0.3..1.2);
-            let image = GrayImage32::from_fn(240, 240, |x, y| {
-                0.5 + 0.5 * (grain.values[y * 240 + x] - 0.5)
-            });
-            let truth = Pose {
-                x: 120.0 + (3.1 * k as f32) % 20.0,
-                y: 110.0 - (2.3 * k as f32) % 20.0,
-                angle_deg: crate::geometry::wrap_angle_deg(-170.0 + 29.0 * k as f32),
-                scale_x: 1.0 + 0.01 * k as f32,
-                scale_y: 1.1,
-                score: 1.0,
-                network_score: 0.0,
-            };
+            let image = grain(100 + k, 0.3..1.2, 0.5);
+            let truth = grain_part_pose(k);
             let template = cut_template(&image, &truth);
             let image = under_condition(&image, Condition::Noise15);
             // The network's angle and scales right, its centre 3 px off in a direction that
@@ -664,19 +675,8 @@ fn a_fine_grain_part_under_uneven_light_is_screened_also_at_full_resolution() {
     let trials = 48;
     let (mut halved_right, mut both_right) = (0, 0);
     for k in 0..trials {
-        let grain = texture_in_band(240, 240, 300 + k, 0.5..1.5);
-        let image = GrayImage32::from_fn(240, 240, |x, y| {
-            0.5 + 0.4 * (grain.values[y * 240 + x] - 0.5)
-        });
-        let truth = Pose {
-            x: 120.0 + (3.1 * k as f32) % 20.0,
-            y: 110.0 - (2.3 * k as f32) % 20.0,
-            angle_deg: crate::geometry::wrap_angle_deg(-170.0 + 29.0 * k as f32),
-            scale_x: 1.0 + 0.01 * k as f32,
-            scale_y: 1.1,
-            score: 1.0,
-            network_score: 0.0,
-        };
+        let image = grain(300 + k, 0.5..1.5, 0.4);
+        let truth = grain_part_pose(k);
         let template = cut_template(&image, &truth);
         let lit = under_condition(&image, Condition::UnevenLight);
         let direction = k as f32 * 1.1;
@@ -711,10 +711,7 @@ fn a_fine_grain_part_under_uneven_light_is_screened_also_at_full_resolution() {
 /// template, or a noisy image (noise-15), screens on the halved level only.
 #[test]
 fn the_full_resolution_second_screen_is_for_fine_textures_without_noise() {
-    let grain = texture_in_band(240, 240, 7, 0.5..1.5);
-    let grain = GrayImage32::from_fn(240, 240, |x, y| {
-        0.5 + 0.4 * (grain.values[y * 240 + x] - 0.5)
-    });
+    let grain = grain(7, 0.5..1.5, 0.4);
     let smooth_image = texture(240, 240, 7);
     let truth = Pose {
         x: 120.0,
