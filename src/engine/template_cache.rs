@@ -7,13 +7,20 @@
 //!   already holds the announced content; a lost announcement channel drops everything.
 //!
 //! An encoding from the store is slow to produce (read, decode, encode on the model thread),
-//! and a change may be announced meanwhile. Every change therefore advances a counter, and a
-//! read may only insert what it read if the counter has not moved since it began ([`ReadTicket`]):
-//! a slow read can never put back what a change removed.
+//! and a change may be announced meanwhile. Every change is therefore numbered, and a read may
+//! only insert what it read if no change to *that* template was seen since it began
+//! ([`ReadTicket`]), or the latest one announced exactly the content it read: a slow read can
+//! never put back what a change removed, and a change to another template (the usual case with
+//! several replicas registering) does not stop this one from being cached.
 
+use std::collections::HashMap;
 use std::sync::{Arc, Mutex};
 
 use crate::matcher::EncodedTemplate;
+
+/// How many templates' latest changes are remembered before they are forgotten together
+/// (reads then in flight are simply not cached: safe, and rare).
+const REMEMBERED_CHANGES: usize = 4096;
 
 #[derive(Clone)]
 struct CachedTemplate {
@@ -25,10 +32,51 @@ struct CachedTemplate {
 #[derive(Debug, Clone, Copy)]
 pub struct ReadTicket(u64);
 
+/// The changes seen, numbered in the order they were seen.
+#[derive(Default)]
+struct Changes {
+    /// The number of the latest change.
+    seen: u64,
+    /// Reads that began before this change number may not insert: everything was dropped
+    /// (a lost announcement channel) or the per-template record was forgotten.
+    forgotten_before: u64,
+    /// Per template: the number of its latest change and the content it then held
+    /// (`None`: deleted or unknown).
+    latest: HashMap<String, (u64, Option<String>)>,
+}
+
+impl Changes {
+    fn record(&mut self, template_id: &str, content_sha256: Option<&str>) {
+        self.seen += 1;
+        if self.latest.len() >= REMEMBERED_CHANGES && !self.latest.contains_key(template_id) {
+            self.latest.clear();
+            self.forgotten_before = self.seen;
+        }
+        self.latest.insert(
+            template_id.to_owned(),
+            (self.seen, content_sha256.map(str::to_owned)),
+        );
+    }
+
+    /// Whether content `content_sha256` of `template_id`, read or written after `ticket`, is
+    /// still current as far as the changes seen tell.
+    fn still_current(&self, template_id: &str, content_sha256: &str, ticket: ReadTicket) -> bool {
+        if ticket.0 < self.forgotten_before {
+            return false;
+        }
+        match self.latest.get(template_id) {
+            Some((number, announced)) if *number > ticket.0 => {
+                announced.as_deref() == Some(content_sha256)
+            }
+            _ => true,
+        }
+    }
+}
+
 pub struct TemplateCache {
     cache: moka::sync::Cache<String, CachedTemplate>,
-    /// Changes seen so far; held while the cache changes, so a check and an insert are one step.
-    changes: Mutex<u64>,
+    /// Held while the cache changes, so a check and an insert are one step.
+    changes: Mutex<Changes>,
 }
 
 impl TemplateCache {
@@ -44,7 +92,7 @@ impl TemplateCache {
             .build();
         Self {
             cache,
-            changes: Mutex::new(0),
+            changes: Mutex::new(Changes::default()),
         }
     }
 
@@ -54,10 +102,11 @@ impl TemplateCache {
 
     /// Taken before reading a template from the store.
     pub fn ticket(&self) -> ReadTicket {
-        ReadTicket(*self.changes.lock().expect("cache lock"))
+        ReadTicket(self.changes.lock().expect("cache lock").seen)
     }
 
-    /// Caches an encoding of a template read from the store, unless a change was seen since `ticket`.
+    /// Caches an encoding of a template read from the store, unless a change to it that
+    /// announced other content was seen since `ticket`.
     pub fn insert_read(
         &self,
         template_id: &str,
@@ -66,7 +115,7 @@ impl TemplateCache {
         ticket: ReadTicket,
     ) -> bool {
         let changes = self.changes.lock().expect("cache lock");
-        if *changes != ticket.0 {
+        if !changes.still_current(template_id, content_sha256, ticket) {
             return false;
         }
         self.cache.insert(
@@ -80,8 +129,8 @@ impl TemplateCache {
     }
 
     /// This replica committed `encoded` as `template_id`'s new content; `ticket` was taken
-    /// before the write. Cached unless another change was seen in between (then it is only
-    /// dropped: the order of the two is unknown here, the store knows).
+    /// before the write. Cached unless a change to it announcing other content was seen in
+    /// between (then it is only dropped: the order of the two is unknown here, the store knows).
     pub fn insert_written(
         &self,
         template_id: &str,
@@ -90,9 +139,9 @@ impl TemplateCache {
         ticket: ReadTicket,
     ) {
         let mut changes = self.changes.lock().expect("cache lock");
-        let unchanged = *changes == ticket.0;
-        *changes += 1;
+        let unchanged = changes.still_current(template_id, content_sha256, ticket);
         if unchanged {
+            changes.record(template_id, Some(content_sha256));
             self.cache.insert(
                 template_id.to_owned(),
                 CachedTemplate {
@@ -101,6 +150,7 @@ impl TemplateCache {
                 },
             );
         } else {
+            changes.record(template_id, None);
             self.cache.invalidate(template_id);
         }
     }
@@ -109,7 +159,7 @@ impl TemplateCache {
     /// already holds that content stays.
     pub fn changed(&self, template_id: &str, content_sha256: Option<&str>) {
         let mut changes = self.changes.lock().expect("cache lock");
-        *changes += 1;
+        changes.record(template_id, content_sha256);
         let current = self
             .cache
             .get(template_id)
@@ -122,7 +172,9 @@ impl TemplateCache {
     /// Anything may have changed: drop every entry.
     pub fn clear(&self) {
         let mut changes = self.changes.lock().expect("cache lock");
-        *changes += 1;
+        changes.seen += 1;
+        changes.forgotten_before = changes.seen;
+        changes.latest.clear();
         self.cache.invalidate_all();
     }
 }
@@ -160,6 +212,46 @@ mod tests {
         let ticket = cache.ticket();
         assert!(cache.insert_read("t", "new", encoded(9), ticket));
         assert_eq!(cache.get("t").unwrap().width, 9);
+    }
+
+    #[test]
+    fn a_read_is_cached_when_only_other_templates_changed_meanwhile() {
+        let cache = cache();
+        let ticket = cache.ticket();
+        // Another replica registers `u` while this one reads `t`.
+        cache.changed("u", Some("u1"));
+        assert!(cache.insert_read("t", "t1", encoded(8), ticket));
+        assert!(cache.get("t").is_some());
+    }
+
+    #[test]
+    fn a_read_is_cached_when_the_change_meanwhile_announced_what_it_read() {
+        let cache = cache();
+        let ticket = cache.ticket();
+        // The announcement of the registration this read found arrives while it encodes.
+        cache.changed("t", Some("new"));
+        assert!(cache.insert_read("t", "new", encoded(8), ticket));
+        // Deleted, then re-registered with other content, both during one read: not cached.
+        let ticket = cache.ticket();
+        cache.changed("t", None);
+        cache.changed("t", Some("newer"));
+        assert!(!cache.insert_read("t", "new", encoded(8), ticket));
+        assert!(cache.get("t").is_none());
+    }
+
+    #[test]
+    fn a_read_overlapping_a_resynchronisation_or_forgotten_changes_is_not_cached() {
+        let cache = cache();
+        let ticket = cache.ticket();
+        cache.clear();
+        assert!(!cache.insert_read("t", "t1", encoded(8), ticket));
+        let ticket = cache.ticket();
+        for i in 0..=REMEMBERED_CHANGES {
+            cache.changed(&format!("other{i}"), Some("x"));
+        }
+        // The record of what changed was forgotten to stay bounded: `t` may have been in it.
+        assert!(!cache.insert_read("t", "t1", encoded(8), ticket));
+        assert!(cache.insert_read("t", "t1", encoded(8), cache.ticket()));
     }
 
     #[test]
