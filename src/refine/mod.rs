@@ -31,6 +31,7 @@ use crate::geometry::{Pose, wrap_angle_deg};
 pub(crate) mod align;
 mod correlate;
 mod coverage;
+mod curve;
 mod detrend;
 mod noise;
 mod rank;
@@ -39,6 +40,7 @@ mod sharpness;
 
 pub use align::Light;
 pub(crate) use coverage::Coverage;
+pub(crate) use curve::LightCurve;
 pub(crate) use detrend::PlaneFreePoints;
 pub(crate) use noise::{NoiseLevel, NoisePoints};
 pub(crate) use rank::RankPoints;
