@@ -40,8 +40,8 @@ use crate::geometry::{Pose, rotated_iou, wrap_angle_deg};
 use crate::imaging::GrayImage32;
 use crate::refine::{
     AngleScaleGrid, Coverage, Light, LightCurve, NoiseLevel, NoisePoints, PlaneFreePoints,
-    RankPoints, Scored, ShadingPoints, Sharpness, TemplatePoints, align, align_from, fine_search,
-    stayed_near,
+    RankPoints, Scored, ShadingPoints, Sharpness, TemplatePoints, align, align_from,
+    align_from_reach, fine_search, stayed_near,
 };
 
 /// Screen ZNCC below which a candidate is not worth confirming: a true object at the right
@@ -962,12 +962,8 @@ impl<'a> Verifier<'a> {
             .map(|w| 0.5 + spread * w)
             .collect();
         let curve = LightCurve::pairing(samples.values(), &levels)?;
-        // The window `align_from` reads around `pose`, and the widest blur's margin.
-        let longest = self.template.width.max(self.template.height) as f32;
-        let largest_scale = pose.scale_x.abs().max(pose.scale_y.abs()).max(1.0);
-        let blur =
-            ((self.template.width * self.template.height) as f32).sqrt() * largest_scale / 36.0;
-        let radius = 0.75 * longest * largest_scale * 1.5 + 8.0 + 6.0 * blur.max(1.0) + 4.0;
+        // The window `align_from` reads around `pose`, and two pixels for the bilinear samples.
+        let radius = align_from_reach(self.template, pose.scale_x.max(pose.scale_y), pose) + 2.0;
         let x0 = (pose.x - radius).floor().max(0.0) as usize;
         let y0 = (pose.y - radius).floor().max(0.0) as usize;
         let x1 = ((pose.x + radius).ceil().max(0.0) as usize + 1).min(self.image.width);
@@ -1009,6 +1005,7 @@ impl<'a> Verifier<'a> {
         })
     }
 
+    /// [`Verifier::confirm`] without the alignment under the light's curve (`light` as there).
     pub(crate) fn confirm_lit(
         &self,
         screened: &Screened,

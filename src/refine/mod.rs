@@ -488,6 +488,28 @@ pub(crate) fn fine_search(
     best
 }
 
+/// Half the side of the windows [`align_from`] reads around its `around` pose, for starts up
+/// to `largest_scale`, before the blur's margin.
+fn align_window_radius(template: &GrayImage32, largest_scale: f32) -> f32 {
+    let longest_side = template.width.max(template.height) as f32;
+    0.75 * longest_side * largest_scale.max(1.0) * 1.5 + 8.0
+}
+
+/// How much wider than [`ALIGN_SIGMAS`] [`align_from`] blurs for a template at `mean_scale`.
+fn align_blur_factor(template: &GrayImage32, mean_scale: f32) -> f32 {
+    let object_side = (template.width * template.height) as f32;
+    (object_side.sqrt() * mean_scale / 36.0).max(1.0)
+}
+
+/// How far from `around` (each way) [`align_from`] reads the image, starting at scales up to
+/// `largest_scale`: a caller that hands it a crop must keep this much around the pose.
+pub(crate) fn align_from_reach(template: &GrayImage32, largest_scale: f32, around: &Pose) -> f32 {
+    let mean_scale = (around.scale_x * around.scale_y).abs().sqrt().max(0.1);
+    let widest_sigma = ALIGN_SIGMAS.iter().copied().fold(1.0f32, f32::max);
+    align_window_radius(template, largest_scale)
+        + 3.0 * widest_sigma * align_blur_factor(template, mean_scale)
+}
+
 /// All five parameters jointly, coarse to fine (Gauss–Newton on blurred images, see [`align`]),
 /// under `light`'s photometric model, from each of `starts`; the pose with the highest ZNCC
 /// under `support` wins. `around` is the pose whose neighbourhood the blurred windows cover
@@ -505,10 +527,9 @@ pub(crate) fn align_from(
         .iter()
         .map(|p| p.scale_x.max(p.scale_y))
         .fold(1.0f32, f32::max);
-    let radius = 0.75 * longest_side * largest_scale * 1.5 + 8.0;
+    let radius = align_window_radius(template, largest_scale);
     let mean_scale = (around.scale_x * around.scale_y).abs().sqrt().max(0.1);
-    let object_side = (template.width * template.height) as f32;
-    let blur_factor = (object_side.sqrt() * mean_scale / 36.0).max(1.0);
+    let blur_factor = align_blur_factor(template, mean_scale);
     let mut sigmas: Vec<f32> = ALIGN_SIGMAS.iter().map(|s| s * blur_factor).collect();
     if blur_factor > 1.5 {
         sigmas.insert(2, 1.0); // no big jump from a wide blur to the sharp image
