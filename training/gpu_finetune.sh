@@ -21,7 +21,9 @@
 # WARMUP (150), BATCH (1024), MODES (eager,compile); INIT=none trains afresh from random
 # initialisation instead (then e.g. LR=1e-3 WARMUP=500, as the base run). MEASURE=0 skips the
 # measurement and plans with RATE (default 3074, the H200's compiled rate of 2026-11-26) in the
-# first of MODES (then MODES=compile): a lease's minutes go to training.
+# first of MODES (then MODES=compile): a lease's minutes go to training. FIT=1 lets train.py
+# re-plan --steps from its own rate inside the warm-up (--fit-schedule SCHEDULE_MINUTES), so that
+# a wrong RATE neither stops the schedule early nor leaves it above its floor.
 set -u
 out=${1:?OUT folder}
 minutes=${2:?training minutes}
@@ -61,8 +63,10 @@ else
 fi
 compile=()
 [ "$mode" = compile ] && compile=(--compile)
+fit=()
+[ "${FIT:-0}" = 1 ] && [ -z "${RESUME:-}" ] && fit=(--fit-schedule "$schedule")
 
-python3 train.py --corpus data/corpus --out "$run" "${start[@]}" "${compile[@]}" \
+python3 train.py --corpus data/corpus --out "$run" "${start[@]}" "${compile[@]}" "${fit[@]}" \
   --elongated-share "$elongated" --aspect-max "$aspect" --level "$level" --crowd-share "$crowd" \
   --steps "$steps" --batch "$chosen_batch" --search-size "$size" --lr "$lr" --warmup "$warmup" \
   --minutes "$minutes" --save-every 2 --snapshots "$out" --validate-every 400 --log-every 50 \

@@ -97,6 +97,10 @@ def parse_args(argv=None):
                         "a fresh optimizer and schedule")
     a.add_argument("--steps", type=int, default=20000, help="steps of the whole schedule (all runs)")
     a.add_argument("--minutes", type=float, default=8.0, help="stop this run after this many minutes")
+    a.add_argument("--fit-schedule", type=float, metavar="MINUTES",
+                   help="re-plan --steps once, inside the warm-up, from the rate measured since "
+                        "the compile so that the schedule ends at its floor MINUTES after the "
+                        "run's start: a time-bounded run whose pairs/s is not known beforehand")
     a.add_argument("--batch", type=int, default=64)
     a.add_argument("--search-size", type=int, default=224)
     a.add_argument("--level", default="S1.5", help="level or comma list (S1, S1.5, S2, S2.5)")
@@ -128,6 +132,8 @@ def parse_args(argv=None):
     args = a.parse_args(argv)
     if args.batch < 1 or args.steps < 1 or args.minutes <= 0:
         a.error("--batch, --steps and --minutes must be positive")
+    if args.fit_schedule is not None and (args.resume or not 0 < args.fit_schedule <= args.minutes):
+        a.error("--fit-schedule needs a new run and 0 < MINUTES <= --minutes")
     if not 0.0 <= args.crowd_share <= 1.0 or not 1 <= args.crowd_max <= 16:
         a.error("--crowd-share must lie in [0, 1] and --crowd-max in 1..16")
     if args.search_size % 4 or not 64 <= args.search_size <= 1024:
@@ -320,7 +326,20 @@ def train(args):
     deadline = started + args.minutes * 60
     next_save = time.monotonic() + args.save_every * 60
     fixed = None
+    # --fit-schedule: time steps FIT_FROM..fit_at (the compile lies before FIT_FROM), then re-plan
+    # the total before the warm-up ends, so that no step already taken saw another schedule.
+    fit_from, fit_started = 10, None
+    fit_at = max(fit_from + 10, min(args.warmup, 60))
     while step < args.steps and time.monotonic() < deadline:
+        if args.fit_schedule is not None and step == fit_from:
+            fit_started = time.monotonic()
+        if fit_started is not None and step == fit_at:
+            seconds_per_step = (time.monotonic() - fit_started) / (fit_at - fit_from)
+            left = started + args.fit_schedule * 60 - time.monotonic()
+            args.steps = step + max(1, int(left / seconds_per_step))
+            fit_started = None
+            say(f"fit: {args.batch / seconds_per_step:.0f} pairs/s over steps {fit_from}-{fit_at} "
+                f"-> --steps {args.steps} to end at {args.fit_schedule:.2f} min")
         lr = P.learning_rate(step, args.steps, args.lr, args.warmup)
         for group in optimizer.param_groups:
             group["lr"] = lr

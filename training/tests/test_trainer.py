@@ -285,6 +285,30 @@ def test_a_short_cpu_run_lowers_the_loss(bank, tmp_path):
     assert record["pairs"] == 40 * 4 and record["search_sides"] == [64]
 
 
+def test_a_fitted_schedule_ends_at_its_floor_by_the_minutes_it_was_given(tmp_path):
+    corpus = tmp_path / "corpus"
+    corpus.mkdir()
+    for i in range(3):
+        Image.fromarray(textured_photo(200, 180, 20 + i)).save(corpus / f"p{i}.png")
+    out = tmp_path / "run"
+    # Far more steps than 30 seconds hold: the re-plan inside the warm-up cuts them to what the
+    # measured rate reaches, and the run ends on its last step (not on --minutes) at the floor.
+    args = T.parse_args(["--corpus", str(corpus), "--out", str(out), "--batch", "2",
+                         "--search-size", "64", "--warmup", "20", "--validation-pairs", "4",
+                         "--device", "cpu", "--minutes", "5", "--steps", "1000000",
+                         "--lr", "1e-3", "--log-every", "1000000", "--validate-every", "1000000",
+                         "--fit-schedule", "0.5"])
+    steps = T.train(args)
+    log = (out / "log.txt").read_text()
+    fitted = int(log.split("-> --steps ")[1].split()[0])
+    assert 30 < fitted < 1000000 and steps == fitted, log
+    last = [line for line in log.splitlines() if line.startswith(f"step {steps}/{steps} ")]
+    assert last and float(last[0].split(" lr ")[1].split()[0]) < 0.1 * 1e-3, log
+    with pytest.raises(SystemExit):
+        T.parse_args(["--corpus", str(corpus), "--out", str(out), "--minutes", "1",
+                      "--fit-schedule", "2"])
+
+
 def test_the_training_record_says_what_every_pair_and_any_pair_could_be():
     common = ["--corpus", "c", "--out", "o"]
     plain = T.trained_on(T.parse_args(common), 1000)
