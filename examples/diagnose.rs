@@ -3,7 +3,7 @@
 //! candidate near it, screened below the survivors, confirmed lower than a decoy, or a decoy
 //! that genuinely matches at least as well as the truth — with the rank and heatmap value of
 //! the object's peak among all peaks; with `--readings`, what each reading made of the right
-//! answers that scored under 0.9. Mirrors `verify_candidates` (the second screen on the
+//! answers that scored under 0.9 and of the wrong ones that reached it. Mirrors `verify_candidates` (the second screen on the
 //! light-evened level, and for a fine texture at full resolution as well, where no first
 //! screen reaches 0.97, the best 20 screens ranked by their
 //! score, `RANKED_BEYOND_SURVIVORS`, the best two confirmed).
@@ -33,18 +33,27 @@ struct Args {
     /// Camera conditions applied to each pair, in order, as `posematch eval --condition`.
     #[arg(long, default_value = "clean", value_delimiter = ',', value_parser = str::parse::<Condition>)]
     condition: Vec<Condition>,
-    /// Print every reading of the answers that are right but score under 0.9.
+    /// Print every reading of the answers that are right but score under 0.9, and of the wrong
+    /// ones that reach it (in scenes without the part, `--condition absent`: false answers).
     #[arg(long)]
     readings: bool,
     #[command(flatten)]
     model: ModelArgs,
 }
 
-/// One line per reading of a right answer that scored under the default `min_score`.
-fn print_readings(index: u64, verifier: &Verifier, pose: &Pose, template: &GrayImage32) {
+/// One line per reading of an answer: `what` it was (right under the default `min_score`, or
+/// wrong above it).
+fn print_readings(
+    index: u64,
+    what: &str,
+    verifier: &Verifier,
+    pose: &Pose,
+    template: &GrayImage32,
+) {
     let chance = posematch::matcher::verification::chance_similarity(template);
+    let length = posematch::matcher::verification::correlation_length(template).unwrap_or(0.0);
     println!(
-        "#{index:4} right, score {:.3}, template chance {chance:.3}, angle {:.0} s {:.2}/{:.2}",
+        "#{index:4} {what}, score {:.3}, template chance {chance:.3} correlation length {length:.2}, angle {:.0} s {:.2}/{:.2}",
         verifier.score_at(pose),
         pose.angle_deg,
         pose.scale_x,
@@ -171,7 +180,7 @@ fn main() {
         if ok(&picked.pose) {
             *tally.entry("right pose, score < 0.9").or_default() += 1;
             if args.readings {
-                print_readings(index, &verifier, &picked.pose, template);
+                print_readings(index, "right", &verifier, &picked.pose, template);
             }
             continue;
         }
@@ -201,6 +210,10 @@ fn main() {
             Some(_) => "confirm lost truth",
         };
         *tally.entry(kind).or_default() += 1;
+        if args.readings && picked.score >= 0.9 {
+            *tally.entry("wrong, score >= 0.9").or_default() += 1;
+            print_readings(index, "wrong", &verifier, &picked.pose, template);
+        }
         println!(
             "#{index:4} {kind:45} picked score {:.3} oracle {:.3} (screen {:.3}) net-rank {:?} of {} near, true screen rank {:?} best screen {:.3}, wide near {:?} top {:?}, truth angle {:.0} s {:.2}/{:.2}",
             picked.score,
