@@ -765,7 +765,7 @@ impl<'a> Verifier<'a> {
         if self.level_factor <= 1.0 || !fine {
             return None;
         }
-        let noise = 255.0 * NoiseLevel::estimate(self.image).variance.sqrt();
+        let noise = NoiseLevel::estimate(self.image).grey_levels();
         (noise < FULL_RESOLUTION_MAX_NOISE).then(|| {
             Self::screening_below(
                 self.template,

@@ -29,6 +29,7 @@
 use crate::geometry::{Pose, wrap_angle_deg};
 
 pub(crate) mod align;
+mod blocking;
 mod correlate;
 mod coverage;
 mod curve;

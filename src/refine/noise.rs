@@ -53,6 +53,11 @@ pub(crate) struct NoiseLevel {
 }
 
 impl NoiseLevel {
+    /// The noise's spread in grey levels of an 8-bit image.
+    pub(crate) fn grey_levels(&self) -> f32 {
+        255.0 * self.variance.sqrt()
+    }
+
     /// Donoho's estimate: `sigma = median |HH| / 0.6745`, HH = `(a − b − c + d) / 2` over the
     /// image's 2x2 blocks (for white noise of `sigma`, HH has exactly that spread; smooth
     /// structure, edges along the axes and gradients give none).
