@@ -382,6 +382,8 @@ pub struct Verifier<'a> {
     /// The template compared with the image's noise taken out ([`Verifier::score_at`]), and
     /// that noise; `None` for a template too smooth for the reading ([`DENOISED_MAX_CHANCE`]).
     denoised: Option<(NoisePoints, NoiseLevel)>,
+    /// The image's noise, estimated once ([`NoiseLevel`]).
+    noise: NoiseLevel,
     /// Scales an answer may have ([`Verifier::plausible`]).
     scale_bounds: (f32, f32),
     /// The caller's scale range, which a confirmed pose is held to ([`Verifier::confirm`]).
@@ -446,6 +448,7 @@ impl<'a> Verifier<'a> {
     ) -> Self {
         let scales = scale_range.unwrap_or((1.0, 1.0));
         let expected_scale = (scales.0 * scales.1).sqrt().max(0.05);
+        let noise = NoiseLevel::estimate(image);
         let mut level_template = std::borrow::Cow::Borrowed(template);
         let mut level_image = std::borrow::Cow::Borrowed(image);
         let mut level_factor = 1.0f32;
@@ -502,13 +505,14 @@ impl<'a> Verifier<'a> {
             chance: chance_similarity(template),
             independent: independent_pixels(template),
             coverage: Coverage::new(template),
-            sharpness: Sharpness::new(template, image, chance_of_reading),
+            sharpness: Sharpness::new(template, image, noise, chance_of_reading),
             ranks: RankPoints::new(template),
             rank_chance: chance_of_reading(template),
             shading: ShadingPoints::new(template),
             shading_chance: chance_of_shading(template),
             denoised: (chance_similarity(template) <= DENOISED_MAX_CHANCE)
-                .then(|| (NoisePoints::new(template), NoiseLevel::estimate(image))),
+                .then(|| (NoisePoints::new(template), noise)),
+            noise,
             scale_bounds: (scales.0 / SCALE_SLACK, scales.1 * SCALE_SLACK),
             required_scales: scale_range,
             expected_scale,
@@ -765,8 +769,7 @@ impl<'a> Verifier<'a> {
         if self.level_factor <= 1.0 || !fine {
             return None;
         }
-        let noise = NoiseLevel::estimate(self.image).grey_levels();
-        (noise < FULL_RESOLUTION_MAX_NOISE).then(|| {
+        (self.noise.grey_levels() < FULL_RESOLUTION_MAX_NOISE).then(|| {
             Self::screening_below(
                 self.template,
                 self.image,

@@ -90,17 +90,21 @@ pub(crate) struct Sharpness<'a> {
     /// Whether the image is noisy or compressed enough for the readings that smooth it
     /// ([`SMOOTHING_MIN_NOISE`]), measured on first use.
     needs_smoothing: OnceLock<bool>,
+    /// The image's noise ([`NoiseLevel`], estimated once by the caller).
+    noise: NoiseLevel,
 }
 
 impl<'a> Sharpness<'a> {
     pub(crate) fn new(
         template: &'a GrayImage32,
         image: &'a GrayImage32,
+        noise: NoiseLevel,
         chance: fn(&GrayImage32) -> f32,
     ) -> Self {
         Self {
             template,
             image,
+            noise,
             chance,
             blurred: Mutex::new(HashMap::new()),
             smoothed: Default::default(),
@@ -135,7 +139,7 @@ impl<'a> Sharpness<'a> {
     /// Whether the image is noisy or compressed enough for the readings that smooth it.
     fn needs_smoothing(&self) -> bool {
         *self.needs_smoothing.get_or_init(|| {
-            NoiseLevel::estimate(self.image).grey_levels() >= SMOOTHING_MIN_NOISE
+            self.noise.grey_levels() >= SMOOTHING_MIN_NOISE
                 || Blocking::estimate(self.image).compressed()
         })
     }
@@ -263,8 +267,13 @@ mod tests {
         let pose = Pose::upright(47.5, 47.5, 0.0);
         let support = TemplatePoints::support(&template);
         let sharp = support.score(&defocused, &pose);
-        let readings = Sharpness::new(&template, &defocused, chance)
-            .read(&support.samples(&defocused, &pose), &pose);
+        let readings = Sharpness::new(
+            &template,
+            &defocused,
+            NoiseLevel::estimate(&defocused),
+            chance,
+        )
+        .read(&support.samples(&defocused, &pose), &pose);
         let best = readings
             .iter()
             .map(|r| r.similarity)
@@ -279,7 +288,7 @@ mod tests {
     fn a_blur_rounded_to_its_step_reads_as_the_exact_blur() {
         let template = textured(36, 36, 1);
         let scene = gaussian_blur(&pasted(&template, &textured(96, 96, 2), 48, 48), 2.0);
-        let sharpness = Sharpness::new(&template, &scene, chance);
+        let sharpness = Sharpness::new(&template, &scene, NoiseLevel::estimate(&scene), chance);
         // Scales whose blurs fall between the steps, and on one.
         for scale in [0.83f32, 1.0, 1.07, 1.31] {
             let pose = Pose {
@@ -343,7 +352,8 @@ mod tests {
                 network_score: 0.0,
             };
             let samples = TemplatePoints::support(&template).samples(image, &pose);
-            let readings = Sharpness::new(&template, image, chance).read(&samples, &pose);
+            let readings = Sharpness::new(&template, image, NoiseLevel::estimate(image), chance)
+                .read(&samples, &pose);
             readings.iter().find(|r| r.blur.1 > 0.0).unwrap().similarity
         };
         let whole = smoothed(&small, 47.5, 47.5);
@@ -391,7 +401,7 @@ mod tests {
         let pose = Pose::upright(47.5, 47.5, 0.0);
         let support = TemplatePoints::support(&template);
         let smoothing_readings = |image: &GrayImage32| {
-            Sharpness::new(&template, image, chance)
+            Sharpness::new(&template, image, NoiseLevel::estimate(image), chance)
                 .read(&support.samples(image, &pose), &pose)
                 .iter()
                 .filter(|r| r.blur.1 > 0.0)
