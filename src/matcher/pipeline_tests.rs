@@ -609,6 +609,22 @@ fn a_part_under_light_falling_across_it_scores_above_the_default_min_score() {
     let similarity = verifier.similarity(&truth);
     assert!(verifier.score(similarity) < 0.9, "{similarity}");
     assert!(verifier.score_at(&truth) >= 0.9);
+    // Reading only until a reading reaches a bar says what the whole score says, at the part
+    // (where the shading planes, read late, decide) and beside it.
+    for shift in [0.0, 1.5, 6.0, 20.0] {
+        let pose = Pose {
+            x: truth.x + shift,
+            ..truth
+        };
+        let score = verifier.score_at(&pose);
+        for bar in [0.0, 0.3, score, score + 1e-6, 0.9, 1.0] {
+            assert_eq!(
+                verifier.score_reaches(&pose, bar),
+                score >= bar,
+                "{shift} {bar}"
+            );
+        }
+    }
 }
 
 /// A 240x240 grain of frequencies in `band` (radians per pixel) around mid-grey, its spread

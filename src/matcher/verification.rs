@@ -28,6 +28,7 @@
 //! the best distinct survivors, lift those that stand out, then hand the confirmed poses to
 //! [`super::selection`].
 
+use std::ops::ControlFlow;
 use std::sync::{Arc, OnceLock};
 use std::time::Instant;
 
@@ -585,35 +586,75 @@ impl<'a> Verifier<'a> {
     /// of collapsing with the whole-template correlation; an unrelated patch has few matching
     /// cells, and a blurred template's higher chance level takes back what the blur gave it.
     pub fn score_at(&self, pose: &Pose) -> f32 {
-        self.readings_at(pose)
-            .iter()
-            .map(Reading::score)
-            .fold(0.0, f32::max)
+        let mut best = 0.0f32;
+        self.each_reading(pose, |reading| {
+            best = best.max(reading.score());
+            ControlFlow::Continue(())
+        });
+        best
+    }
+
+    /// Whether [`Verifier::score_at`] of `pose` is at least `bar`, reading only until one
+    /// reading reaches it (the rank correlation, which sorts the samples, last).
+    pub fn score_reaches(&self, pose: &Pose, bar: f32) -> bool {
+        if bar <= 0.0 {
+            return true;
+        }
+        let mut reached = false;
+        self.each_reading(pose, |reading| {
+            reached = reading.score() >= bar;
+            if reached {
+                ControlFlow::Break(())
+            } else {
+                ControlFlow::Continue(())
+            }
+        });
+        reached
     }
 
     /// Every reading [`Verifier::score_at`] takes the best of, each with its similarity and
     /// chance level: what a score was made of, for diagnosis (`examples/diagnose`).
     pub fn readings_at(&self, pose: &Pose) -> Vec<Reading> {
+        let mut readings = Vec::new();
+        self.each_reading(pose, |reading| {
+            readings.push(reading);
+            ControlFlow::Continue(())
+        });
+        readings
+    }
+
+    /// Hands each reading of `pose` to `visit` until it breaks: the cheap ones first.
+    fn each_reading(&self, pose: &Pose, mut visit: impl FnMut(Reading) -> ControlFlow<()>) {
         // Every reading compares its own template values with the same image samples.
         let samples = self.support.samples(self.image, pose);
-        let mut readings = vec![
-            Reading::whole(
-                ReadingKind::Whole,
-                samples.zncc(self.support.weights()),
-                self.chance,
-            ),
-            Reading::whole(
-                ReadingKind::Rank,
-                self.ranks.similarity(&samples),
-                self.rank_chance,
-            ),
-        ];
+        let whole = Reading::whole(
+            ReadingKind::Whole,
+            samples.zncc(self.support.weights()),
+            self.chance,
+        );
+        if visit(whole).is_break() {
+            return;
+        }
+        for reading in self.sharpness.read(&samples, pose) {
+            let (defocus, smoothing) = reading.blur;
+            let reading = Reading::whole(
+                ReadingKind::Sharpness { defocus, smoothing },
+                reading.similarity,
+                reading.chance,
+            );
+            if visit(reading).is_break() {
+                return;
+            }
+        }
         if let Some(chance) = self.shading_chance {
-            readings.push(Reading::whole(
+            let reading = Reading::whole(
                 ReadingKind::Shading,
                 self.shading.similarity(&samples),
                 chance,
-            ));
+            );
+            if visit(reading).is_break() {
+                return;
+            }
         }
         if let Some(reading) = self
             .denoised
@@ -622,34 +663,31 @@ impl<'a> Verifier<'a> {
         {
             let chance =
                 (self.chance.powi(2) + CHANCE_LOG_HYPOTHESES * reading.noise_spread).sqrt();
-            readings.push(Reading::whole(
+            let reading = Reading::whole(
                 ReadingKind::Denoised,
                 reading.similarity,
                 chance.min(READING_MAX_CHANCE),
-            ));
+            );
+            if visit(reading).is_break() {
+                return;
+            }
         }
-        readings.extend(
-            self.sharpness
-                .read(&samples, pose)
-                .into_iter()
-                .map(|reading| {
-                    let (defocus, smoothing) = reading.blur;
-                    Reading::whole(
-                        ReadingKind::Sharpness { defocus, smoothing },
-                        reading.similarity,
-                        reading.chance,
-                    )
-                }),
-        );
         if let Some(reading) = self.coverage.measure(&samples) {
-            readings.push(Reading {
+            let reading = Reading {
                 kind: ReadingKind::Visible,
                 similarity: reading.visible_similarity,
                 chance: chance_of_share(self.independent, reading.visible_points),
                 share: reading.visible,
-            });
+            };
+            if visit(reading).is_break() {
+                return;
+            }
         }
-        readings
+        let _ = visit(Reading::whole(
+            ReadingKind::Rank,
+            self.ranks.similarity(&samples),
+            self.rank_chance,
+        ));
     }
 
     /// The similarity of the template at `pose`: ZNCC over its support, in [-1, 1].
@@ -806,7 +844,7 @@ impl<'a> Verifier<'a> {
         }
         let full = twin.screen_evened(candidate, first);
         let same = full.pose.x == halved.pose.x && full.pose.y == halved.pose.y;
-        if !same && self.score_at(&full.pose) > self.score_at(&halved.pose) {
+        if !same && !self.score_reaches(&halved.pose, self.score_at(&full.pose)) {
             Screened {
                 pose: full.pose,
                 score: halved.score.max(full.score),

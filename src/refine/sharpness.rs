@@ -148,37 +148,33 @@ impl<'a> Sharpness<'a> {
     /// needs smoothing), whose samples in the image (the template's support's) are `samples`.
     pub(crate) fn read(&self, samples: &PoseSamples, pose: &Pose) -> Vec<SharpnessReading> {
         let scale = (pose.scale_x * pose.scale_y).abs().sqrt().max(0.05);
-        READINGS
+        let read: Vec<_> = READINGS
             .iter()
             .zip(&self.smoothed)
             .filter(|&(&(_, smoothing), _)| smoothing <= 0.0 || self.needs_smoothing())
-            .map(|(&(defocus, smoothing), smoothed)| {
-                let blurred = self.blurred(defocus.hypot(smoothing) / scale);
+            .map(|(&blur, smoothed)| {
+                let (defocus, smoothing) = blur;
+                (
+                    blur,
+                    smoothed,
+                    self.blurred(defocus.hypot(smoothing) / scale),
+                )
+            })
+            .collect();
+        // The readings that leave the image as it is correlate with the same samples: side by
+        // side, in one pass.
+        let sharp_weights: Vec<&[f32]> = read
+            .iter()
+            .filter(|((_, smoothing), ..)| *smoothing <= 0.0)
+            .map(|(_, _, blurred)| blurred.points.weights())
+            .collect();
+        let mut sharp = samples.zncc_each(&sharp_weights).into_iter();
+        read.iter()
+            .map(|&((defocus, smoothing), smoothed, ref blurred)| {
                 let similarity = if smoothing <= 0.0 {
-                    samples.zncc(blurred.points.weights())
-                } else if self.image.width * self.image.height <= SMOOTH_WHOLE_IMAGE_PIXELS {
-                    let smoothed = smoothed.get_or_init(|| gaussian_blur(self.image, smoothing));
-                    blurred.points.score(smoothed, pose)
+                    sharp.next().expect("one correlation per sharp reading")
                 } else {
-                    let reach = (self.template.width as f32 * pose.scale_x.abs())
-                        .hypot(self.template.height as f32 * pose.scale_y.abs())
-                        / 2.0
-                        + 2.0;
-                    let (window, x0, y0) = blurred_window(
-                        self.image,
-                        pose.x,
-                        pose.y,
-                        reach + 3.0 * smoothing,
-                        smoothing,
-                    );
-                    blurred.points.score(
-                        &window,
-                        &Pose {
-                            x: pose.x - x0,
-                            y: pose.y - y0,
-                            ..*pose
-                        },
-                    )
+                    self.smoothed_similarity(blurred, smoothed, smoothing, pose)
                 };
                 SharpnessReading {
                     blur: (defocus, smoothing),
@@ -187,6 +183,41 @@ impl<'a> Sharpness<'a> {
                 }
             })
             .collect()
+    }
+
+    /// The `blurred` template's ZNCC with the image smoothed by `smoothing` at `pose`: the
+    /// whole image smoothed once (`smoothed`, made on first use) where it is small enough,
+    /// else a window around the pose.
+    fn smoothed_similarity(
+        &self,
+        blurred: &BlurredTemplate,
+        smoothed: &OnceLock<GrayImage32>,
+        smoothing: f32,
+        pose: &Pose,
+    ) -> f32 {
+        if self.image.width * self.image.height <= SMOOTH_WHOLE_IMAGE_PIXELS {
+            let smoothed = smoothed.get_or_init(|| gaussian_blur(self.image, smoothing));
+            return blurred.points.score(smoothed, pose);
+        }
+        let reach = (self.template.width as f32 * pose.scale_x.abs())
+            .hypot(self.template.height as f32 * pose.scale_y.abs())
+            / 2.0
+            + 2.0;
+        let (window, x0, y0) = blurred_window(
+            self.image,
+            pose.x,
+            pose.y,
+            reach + 3.0 * smoothing,
+            smoothing,
+        );
+        blurred.points.score(
+            &window,
+            &Pose {
+                x: pose.x - x0,
+                y: pose.y - y0,
+                ..*pose
+            },
+        )
     }
 }
 
