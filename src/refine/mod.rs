@@ -226,6 +226,10 @@ impl PoseSamples {
     /// so a pass costs about what one sum costs; the sharpness readings correlate three blurred
     /// templates with the same samples, and read side by side they cost one pass.
     pub(crate) fn zncc_each(&self, weights: &[&[f32]]) -> Vec<f32> {
+        if weights.iter().any(|w| w.len() != self.values.len()) {
+            // Not the support's weights (cannot happen): each as `zncc` reads it.
+            return weights.iter().map(|w| self.zncc(w)).collect();
+        }
         let mut out = Vec::with_capacity(weights.len());
         for chunk in weights.chunks(4) {
             match *chunk {
@@ -245,10 +249,7 @@ impl PoseSamples {
         let Some(&reference) = self.values.first() else {
             return [-1.0; K];
         };
-        let weights = weights.map(|w| {
-            debug_assert_eq!(w.len(), n, "one weight per sample");
-            &w[..n]
-        });
+        let weights = weights.map(|w| &w[..n]);
         let (mut sum, mut sum_sq, mut dots) = (0f64, 0f64, [0f64; K]);
         for (i, &sample) in self.values.iter().enumerate() {
             let value = f64::from(sample - reference);

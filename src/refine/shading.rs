@@ -137,6 +137,14 @@ impl ShadingPoints {
     /// same numbers), but side by side, so that the pass costs about what one sum did.
     fn projections(&self, samples: &[f32]) -> (f64, [f64; 6]) {
         let n = samples.len();
+        if self.basis[0].len() != n {
+            // Not the support's samples (cannot happen): the sums as `dot` reads them.
+            let wide: Vec<f64> = samples.iter().map(|&s| f64::from(s)).collect();
+            return (
+                dot(&wide, &wide),
+                self.basis.each_ref().map(|q| dot(&wide, q)),
+            );
+        }
         let [b0, b1, b2, b3, b4, b5] = self.basis.each_ref().map(|q| &q[..n]);
         // Iterator sums start at -0.0, so these do too.
         let mut energy = -0.0f64;
