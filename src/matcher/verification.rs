@@ -602,12 +602,11 @@ impl<'a> Verifier<'a> {
         }
         let mut reached = false;
         self.each_reading(pose, |reading| {
-            reached = reading.score() >= bar;
-            if reached {
-                ControlFlow::Break(())
-            } else {
-                ControlFlow::Continue(())
+            if reading.score() >= bar {
+                reached = true;
+                return ControlFlow::Break(());
             }
+            ControlFlow::Continue(())
         });
         reached
     }
@@ -623,7 +622,9 @@ impl<'a> Verifier<'a> {
         readings
     }
 
-    /// Hands each reading of `pose` to `visit` until it breaks: the cheap ones first.
+    /// Hands each reading of `pose` to `visit` until it breaks: the cheap ones first (the
+    /// blurred templates' come together, all read before the first is visited), the rank
+    /// correlation, which sorts the samples, last.
     fn each_reading(&self, pose: &Pose, mut visit: impl FnMut(Reading) -> ControlFlow<()>) {
         // Every reading compares its own template values with the same image samples.
         let samples = self.support.samples(self.image, pose);

@@ -189,8 +189,8 @@ impl TemplatePoints {
 /// a side, the order of [`TemplatePoints::support`]), sampled once.
 ///
 /// Why: a pose's score is the best of several readings (`matcher/verification.rs`,
-/// `Verifier::readings_at`): the rank correlation, the shading, the denoised and the blurred
-/// templates, the cells' coverage. Each compares its own template values with the same image
+/// `Verifier::readings_at`): the blurred templates, the shading, the denoised, the cells'
+/// coverage, the rank correlation. Each compares its own template values with the same image
 /// samples; sampled by each reading anew they were most of the cost of scoring a pose, which
 /// the verifier does some fifty times a pair.
 pub(crate) struct PoseSamples {

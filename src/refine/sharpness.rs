@@ -148,7 +148,7 @@ impl<'a> Sharpness<'a> {
     /// needs smoothing), whose samples in the image (the template's support's) are `samples`.
     pub(crate) fn read(&self, samples: &PoseSamples, pose: &Pose) -> Vec<SharpnessReading> {
         let scale = (pose.scale_x * pose.scale_y).abs().sqrt().max(0.05);
-        let read: Vec<_> = READINGS
+        let blurred_readings: Vec<_> = READINGS
             .iter()
             .zip(&self.smoothed)
             .filter(|&(&(_, smoothing), _)| smoothing <= 0.0 || self.needs_smoothing())
@@ -163,13 +163,14 @@ impl<'a> Sharpness<'a> {
             .collect();
         // The readings that leave the image as it is correlate with the same samples: side by
         // side, in one pass.
-        let sharp_weights: Vec<&[f32]> = read
+        let sharp_weights: Vec<&[f32]> = blurred_readings
             .iter()
             .filter(|((_, smoothing), ..)| *smoothing <= 0.0)
             .map(|(_, _, blurred)| blurred.points.weights())
             .collect();
         let mut sharp = samples.zncc_each(&sharp_weights).into_iter();
-        read.iter()
+        blurred_readings
+            .iter()
             .map(|&((defocus, smoothing), smoothed, ref blurred)| {
                 let similarity = if smoothing <= 0.0 {
                     sharp.next().expect("one correlation per sharp reading")
