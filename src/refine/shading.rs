@@ -129,9 +129,7 @@ impl ShadingPoints {
         let explained = coefficients[3..].iter().map(|c| c * c).sum::<f64>();
         ((explained / beyond_offset).sqrt() as f32).clamp(0.0, 1.0)
     }
-}
 
-impl ShadingPoints {
     /// The samples' energy `Σ s²` and their coefficients on each basis vector `Σ s·q`, in
     /// one pass: seven sums, each added in the points' order as a plain [`dot`] would (the
     /// same numbers), but side by side, so that the pass costs about what one sum did.
