@@ -285,7 +285,7 @@ pub fn correlation_length(template: &GrayImage32) -> Option<f32> {
 }
 
 /// How many more tries (`2·ln M`) a pose counts per unit of `−ln(scale_x·scale_y)` below the
-/// template's own size ([`chance_at_scales`]): M ∝ `1/(scale_x·scale_y)²`. The alignment
+/// template's own size ([`shrunk_chance_factor`]): M ∝ `1/(scale_x·scale_y)²`. The alignment
 /// reaches a few image pixels either way whatever the scale, so a pose shrunk to half the
 /// template's area slides over twice as many of the template's independent places (M ∝
 /// `1/area`), and its template is read by half as many image pixels, which a smooth photo
@@ -298,24 +298,32 @@ pub fn correlation_length(template: &GrayImage32) -> Option<f32> {
 /// that size (docs/accuracy.md, "What a score means").
 const SHRUNK_LOG_HYPOTHESES: f32 = 4.0;
 
-/// The highest chance level [`chance_at_scales`] raises a reading's to (a ZNCC of 0.995 then
+/// The highest chance level [`raised_chance`] raises a reading's to (a ZNCC of 0.995 then
 /// scores 0.9).
 const SHRUNK_MAX_CHANCE: f32 = 0.95;
 
-/// A reading's chance level at a pose of scales `scale_x`, `scale_y`: the count of tries
-/// `2·ln M` raised by [`SHRUNK_LOG_HYPOTHESES`] `· ln(1/(scale_x·scale_y))` where the pose is
-/// smaller than the template (`chance ∝ √(2·ln M)`), capped at [`SHRUNK_MAX_CHANCE`]; at or
-/// above the template's area, `chance` itself. A shrunk template fits unrelated texture more
-/// easily: in the tuning sets' scenes without the part, most answers at 0.9 below the scales
-/// the parts had were at 0.4–0.7 of the template's size.
-fn chance_at_scales(chance: f32, pose: &Pose) -> f32 {
+/// The factor a reading's chance level is raised by at a pose of scales `scale_x`,
+/// `scale_y` ([`raised_chance`]): the count of tries `2·ln M` raised by
+/// [`SHRUNK_LOG_HYPOTHESES`] `· ln(1/(scale_x·scale_y))` where the pose is smaller than the
+/// template (`chance ∝ √(2·ln M)`); 1 at or above the template's area. A shrunk template fits
+/// unrelated texture more easily: in the tuning sets' scenes without the part, most answers at
+/// 0.9 below the scales the parts had were at 0.4–0.7 of the template's size. Worked out once
+/// per pose, for every reading of it.
+fn shrunk_chance_factor(pose: &Pose) -> f32 {
     let area = pose.scale_x * pose.scale_y;
     if area.is_nan() || area >= 1.0 {
-        return chance;
+        return 1.0;
     }
     let extra = -SHRUNK_LOG_HYPOTHESES * area.max(1e-3).ln();
-    let raised = chance * ((CHANCE_LOG_HYPOTHESES + extra) / CHANCE_LOG_HYPOTHESES).sqrt();
-    raised.min(SHRUNK_MAX_CHANCE).max(chance)
+    ((CHANCE_LOG_HYPOTHESES + extra) / CHANCE_LOG_HYPOTHESES).sqrt()
+}
+
+/// `chance` times `factor`, capped at [`SHRUNK_MAX_CHANCE`], never lowered.
+fn raised_chance(chance: f32, factor: f32) -> f32 {
+    if factor <= 1.0 {
+        return chance;
+    }
+    (chance * factor).min(SHRUNK_MAX_CHANCE).max(chance)
 }
 
 /// `(similarity − chance) / (1 − chance)` clamped to [0, 1].
@@ -362,11 +370,11 @@ impl Reading {
         }
     }
 
-    /// The reading of a pose with its chance level raised where the pose is smaller than the
-    /// template ([`chance_at_scales`]).
-    fn at_scales(self, pose: &Pose) -> Self {
+    /// The reading with its chance level raised by `factor` ([`shrunk_chance_factor`]), where
+    /// the pose is smaller than the template.
+    fn raised_by(self, factor: f32) -> Self {
         Self {
-            chance: chance_at_scales(self.chance, pose),
+            chance: raised_chance(self.chance, factor),
             ..self
         }
     }
@@ -669,7 +677,8 @@ impl<'a> Verifier<'a> {
     /// blurred templates' come together, all read before the first is visited), the rank
     /// correlation, which sorts the samples, last.
     fn each_reading(&self, pose: &Pose, mut visit: impl FnMut(Reading) -> ControlFlow<()>) {
-        let mut visit = |reading: Reading| visit(reading.at_scales(pose));
+        let factor = shrunk_chance_factor(pose);
+        let mut visit = |reading: Reading| visit(reading.raised_by(factor));
         // Every reading compares its own template values with the same image samples.
         let samples = self.support.samples(self.image, pose);
         let whole = Reading::whole(
@@ -1668,6 +1677,10 @@ mod tests {
         var.sqrt() / mean
     }
 
+    fn chance_at_scales(chance: f32, pose: &Pose) -> f32 {
+        raised_chance(chance, shrunk_chance_factor(pose))
+    }
+
     #[test]
     fn a_pose_smaller_than_the_template_is_held_to_a_higher_chance_level() {
         let at = |scale_x, scale_y| Pose {
@@ -1692,8 +1705,9 @@ mod tests {
         // A smooth template (chance at its cap 0.8) correlating at 0.985: 0.9 at its own size,
         // under it at 0.6 of it either way.
         let reading = Reading::whole(ReadingKind::Whole, 0.985, MAX_CHANCE);
-        assert!(reading.at_scales(&at(1.0, 1.0)).score() >= 0.9);
-        assert!(reading.at_scales(&at(0.6, 0.6)).score() < 0.9);
+        let raised = |pose| reading.raised_by(shrunk_chance_factor(&pose)).score();
+        assert!(raised(at(1.0, 1.0)) >= 0.9);
+        assert!(raised(at(0.6, 0.6)) < 0.9);
     }
 
     #[test]
