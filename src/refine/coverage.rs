@@ -28,6 +28,31 @@ const CELL_MATCHES: f32 = 0.5;
 /// structure: it weighs nothing in the visible share and always counts as visible.
 const FLAT_CELL_SPREAD: f32 = 2.0 / 255.0;
 
+/// Points of a matching cell nearer than this (template pixels) to a neighbouring cell that
+/// does not match count in neither the visible similarity nor the visible points. A cover's
+/// edge runs through the part wherever it lies, and a bilinear sample within an image pixel
+/// of it mixes the cover into the visible side; a smooth part, whose chance level is high
+/// (0.8), loses most of its score to that one row (`covered_probe`, lomiri tuning photos: the
+/// part's own pose read at 0.89–0.94 where 0.98 would score 0.7). A template pixel 1.5 away
+/// is an image pixel away at every scale down to 0.67. Tuning set (lomiri photos, 1000 S1.5
+/// pairs, `--min-score 0.7`), found before → after: plain cover 85.3 → 85.9 %, clutter 85.2 →
+/// 87.0 %; answers in scenes without the part at or above 0.7 (500) 67 → 67, at or above
+/// 0.9 (1000) 23 → 23.
+const COVER_EDGE: f32 = 1.5;
+
+/// The eight neighbouring cells, `(column, row)` steps; a point's [`Cell::near`] has bit `k`
+/// set where it lies within [`COVER_EDGE`] of neighbour `k`.
+const NEIGHBOURS: [(i64, i64); 8] = [
+    (-1, -1),
+    (0, -1),
+    (1, -1),
+    (-1, 0),
+    (1, 0),
+    (-1, 1),
+    (0, 1),
+    (1, 1),
+];
+
 /// Sums of one cell of points in the image, in f64: enough to combine cells into one ZNCC.
 #[derive(Debug, Clone, Copy, Default)]
 struct CellSums {
@@ -79,6 +104,10 @@ struct Cell {
     /// What it counts for in the visible share: its points, 0 when flat
     /// ([`Coverage::new`]).
     weight: f32,
+    /// Its place in the grid: `(column, row)`.
+    place: (usize, usize),
+    /// Per point, the neighbours ([`NEIGHBOURS`]) whose edge it lies near ([`COVER_EDGE`]).
+    near: Vec<u8>,
 }
 
 /// The template's support points (in the support's order) in [`CELLS_PER_SIDE`]² cells.
@@ -122,24 +151,45 @@ impl Coverage {
             (template.width as f32 - 1.0) / 2.0,
             (template.height as f32 - 1.0) / 2.0,
         );
+        let cell_side = (
+            template.width as f32 / CELLS_PER_SIDE as f32,
+            template.height as f32 / CELLS_PER_SIDE as f32,
+        );
+        // A point's cell, and the neighbours whose edge it lies near.
         let cell_of = |(u, v): (f32, f32)| {
-            let col = ((u + cx + 0.5) / template.width as f32 * CELLS_PER_SIDE as f32) as usize;
-            let row = ((v + cy + 0.5) / template.height as f32 * CELLS_PER_SIDE as f32) as usize;
-            row.min(CELLS_PER_SIDE - 1) * CELLS_PER_SIDE + col.min(CELLS_PER_SIDE - 1)
+            let (x, y) = (u + cx + 0.5, v + cy + 0.5);
+            let col = ((x / cell_side.0) as usize).min(CELLS_PER_SIDE - 1);
+            let row = ((y / cell_side.1) as usize).min(CELLS_PER_SIDE - 1);
+            let left = x - col as f32 * cell_side.0 < COVER_EDGE;
+            let right = (col + 1) as f32 * cell_side.0 - x < COVER_EDGE;
+            let top = y - row as f32 * cell_side.1 < COVER_EDGE;
+            let bottom = (row + 1) as f32 * cell_side.1 - y < COVER_EDGE;
+            let near_x = |dx: i64| (dx == -1 && left) || (dx == 1 && right);
+            let near_y = |dy: i64| (dy == -1 && top) || (dy == 1 && bottom);
+            let near = NEIGHBOURS
+                .iter()
+                .enumerate()
+                .filter(|&(_, &(dx, dy))| (dx == 0 || near_x(dx)) && (dy == 0 || near_y(dy)))
+                .fold(0u8, |bits, (k, _)| bits | 1 << k);
+            (row * CELLS_PER_SIDE + col, near)
         };
-        // Each cell's points and centred values.
+        // Each cell's points, centred values and nearness to its neighbours.
         let mut indices_of = vec![Vec::new(); CELLS_PER_SIDE * CELLS_PER_SIDE];
         let mut values_of: Vec<Vec<f32>> = vec![Vec::new(); CELLS_PER_SIDE * CELLS_PER_SIDE];
+        let mut near_of: Vec<Vec<u8>> = vec![Vec::new(); CELLS_PER_SIDE * CELLS_PER_SIDE];
         for (index, (&offset, &value)) in offsets.iter().zip(&values).enumerate() {
-            let cell = cell_of(offset);
+            let (cell, near) = cell_of(offset);
             indices_of[cell].push(index);
             values_of[cell].push(value - mean);
+            near_of[cell].push(near);
         }
         let cells: Vec<Cell> = indices_of
             .into_iter()
             .zip(values_of)
-            .filter(|(indices, _)| !indices.is_empty())
-            .map(|(indices, values)| {
+            .zip(near_of)
+            .enumerate()
+            .filter(|(_, ((indices, _), _))| !indices.is_empty())
+            .map(|(grid_index, ((indices, values), near))| {
                 let n = values.len() as f64;
                 let t: f64 = values.iter().map(|&v| f64::from(v)).sum();
                 let tt: f64 = values.iter().map(|&v| f64::from(v).powi(2)).sum();
@@ -151,6 +201,8 @@ impl Coverage {
                     t,
                     tt,
                     weight: if flat { 0.0 } else { n as f32 },
+                    place: (grid_index % CELLS_PER_SIDE, grid_index / CELLS_PER_SIDE),
+                    near,
                 }
             })
             .collect();
@@ -179,6 +231,40 @@ impl Coverage {
         }
     }
 
+    /// [`Coverage::sums`] of the cell's points that lie near none of the `away` neighbours
+    /// ([`Cell::near`] bits).
+    fn sums_away_from(cell: &Cell, samples: &[f32], away: u8) -> CellSums {
+        let mut sums = CellSums::default();
+        for ((&index, &t), &near) in cell.indices.iter().zip(&cell.values).zip(&cell.near) {
+            if near & away == 0 {
+                let (t, sample) = (f64::from(t), f64::from(samples[index]));
+                sums.n += 1.0;
+                sums.t += t;
+                sums.tt += t * t;
+                sums.i += sample;
+                sums.ii += sample * sample;
+                sums.ti += t * sample;
+            }
+        }
+        sums
+    }
+
+    /// The neighbours ([`NEIGHBOURS`] bits) of the cell at `place` that do not match, by the
+    /// `matching` flags of the grid (`None`: no cell there).
+    fn unmatched_neighbours(place: (usize, usize), matching: &[Option<bool>]) -> u8 {
+        NEIGHBOURS
+            .iter()
+            .enumerate()
+            .filter(|&(_, &(dx, dy))| {
+                let (col, row) = (place.0 as i64 + dx, place.1 as i64 + dy);
+                let side = CELLS_PER_SIDE as i64;
+                (0..side).contains(&col)
+                    && (0..side).contains(&row)
+                    && matching[(row * side + col) as usize] == Some(false)
+            })
+            .fold(0u8, |bits, (k, _)| bits | 1 << k)
+    }
+
     /// The template's cells in the image's `samples` at a pose (the support's). `None` for a
     /// template without structure in any cell (nothing to tell a covered cell from a visible
     /// one).
@@ -189,8 +275,8 @@ impl Coverage {
         let samples = samples.values();
         debug_assert_eq!(samples.len(), self.points, "the support's samples");
         let mut visible = 0.0f32;
-        let mut together = CellSums::default();
-        let mut cells_similarity = 0.0f64;
+        let mut matching = vec![None; CELLS_PER_SIDE * CELLS_PER_SIDE];
+        let mut cell_sums = Vec::with_capacity(self.cells.len());
         for cell in &self.cells {
             let sums = Self::sums(cell, samples);
             let matches = if cell.weight > 0.0 {
@@ -199,7 +285,22 @@ impl Coverage {
                 1.0
             };
             visible += cell.weight * matches;
-            if matches >= 1.0 {
+            matching[cell.place.1 * CELLS_PER_SIDE + cell.place.0] = Some(matches >= 1.0);
+            cell_sums.push(sums);
+        }
+        let mut together = CellSums::default();
+        let mut cells_similarity = 0.0f64;
+        for (cell, sums) in self.cells.iter().zip(cell_sums) {
+            if matching[cell.place.1 * CELLS_PER_SIDE + cell.place.0] != Some(true) {
+                continue;
+            }
+            let away = Self::unmatched_neighbours(cell.place, &matching);
+            let sums = if away == 0 {
+                sums
+            } else {
+                Self::sums_away_from(cell, samples, away)
+            };
+            if sums.n > 0.0 {
                 together.add(&sums);
                 cells_similarity += f64::from(sums.zncc()) * sums.n;
             }
@@ -277,6 +378,39 @@ mod tests {
         assert!((0.7..0.82).contains(&covered.visible), "{covered:?}");
         assert!(covered.visible_similarity > 0.999, "{covered:?}");
         assert!((covered.visible_points - 0.75).abs() < 0.07, "{covered:?}");
+    }
+
+    #[test]
+    fn the_covers_edge_does_not_spoil_a_smooth_parts_visible_cells() {
+        // A smooth part (about 100 grey levels of slow waves) half a pixel off the image grid,
+        // so that every sample mixes two image pixels, with its bottom-right quarter under a
+        // dark plain cover whose edge lies a quarter pixel inside the quarter.
+        let smooth = |u: f32, v: f32| 0.5 + 0.2 * (u / 6.0).sin() * (v / 7.0).cos();
+        let template = GrayImage32::from_fn(36, 36, |x, y| smooth(x as f32, y as f32));
+        let (x0, y0) = (40.5, 30.5);
+        let background = textured(120, 100, 7);
+        let image = GrayImage32::from_fn(120, 100, |x, y| {
+            let (u, v) = (x as f32 - x0, y as f32 - y0);
+            let inside = (-0.5..35.5).contains(&u) && (-0.5..35.5).contains(&v);
+            if inside && u > 17.25 && v > 17.25 {
+                0.1
+            } else if inside {
+                smooth(u, v)
+            } else {
+                background.values[y * 120 + x]
+            }
+        });
+        let pose = at(x0 + 17.5, y0 + 17.5);
+        let covered = measure(&template, &image, &pose).unwrap();
+        // The edge spoils some cells beside the cover outright (each cell's own match is
+        // judged on all its points); the matching ones beside it are read without their row
+        // or column next to the cover: 0.988 here, 0.966 with it.
+        assert!((0.5..0.82).contains(&covered.visible), "{covered:?}");
+        assert!(covered.visible_similarity > 0.98, "{covered:?}");
+        assert!(
+            covered.visible_points < covered.visible - 0.02,
+            "the points beside the cover left out: {covered:?}"
+        );
     }
 
     #[test]
