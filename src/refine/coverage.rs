@@ -275,9 +275,10 @@ impl Coverage {
         let samples = samples.values();
         debug_assert_eq!(samples.len(), self.points, "the support's samples");
         let mut visible = 0.0f32;
-        let mut matching = vec![None; CELLS_PER_SIDE * CELLS_PER_SIDE];
-        let mut cell_sums = Vec::with_capacity(self.cells.len());
-        for cell in &self.cells {
+        // On the stack: every reading of every pose passes here.
+        let mut matching = [None; CELLS_PER_SIDE * CELLS_PER_SIDE];
+        let mut cell_sums = [CellSums::default(); CELLS_PER_SIDE * CELLS_PER_SIDE];
+        for (cell, sums_here) in self.cells.iter().zip(&mut cell_sums) {
             let sums = Self::sums(cell, samples);
             let matches = if cell.weight > 0.0 {
                 ((sums.zncc() - CELL_UNRELATED) / (CELL_MATCHES - CELL_UNRELATED)).clamp(0.0, 1.0)
@@ -286,11 +287,11 @@ impl Coverage {
             };
             visible += cell.weight * matches;
             matching[cell.place.1 * CELLS_PER_SIDE + cell.place.0] = Some(matches >= 1.0);
-            cell_sums.push(sums);
+            *sums_here = sums;
         }
         let mut together = CellSums::default();
         let mut cells_similarity = 0.0f64;
-        for (cell, sums) in self.cells.iter().zip(cell_sums) {
+        for (cell, &sums) in self.cells.iter().zip(&cell_sums) {
             if matching[cell.place.1 * CELLS_PER_SIDE + cell.place.0] != Some(true) {
                 continue;
             }
