@@ -4,15 +4,17 @@
 //! part's own pose (screened and confirmed from the truth, with the whole template and with
 //! the covered quarter left out; scored with the whole template), lost to one that scores
 //! lower (the search never reached the part), or whether the part's own pose scores under
-//! `min_score`; with the visible-share reading at the part's pose. Use it on tuning photos,
+//! `min_score`; with the visible-share reading at the part's pose and at the exact truth.
+//! Use it on tuning photos,
 //! never on evaluation photos:
 //!
 //! `cargo run --release --example covered_probe -- --images DIR [--count 200] [--min-score 0.7]`
 use clap::Parser;
 use posematch::cli::{ModelArgs, load_model};
 use posematch::evaluation::pair_error;
+use posematch::geometry::Pose;
 use posematch::imaging::GrayImage32;
-use posematch::matcher::verification::Verifier;
+use posematch::matcher::verification::{Reading, ReadingKind, Verifier};
 use posematch::matcher::{MatchOptions, ValidOptions};
 use posematch::refine::Light;
 use posematch::synth::conditions::{self, Condition};
@@ -96,19 +98,19 @@ fn main() {
             "nothing answered; truth reaches min_score"
         };
         *tally.entry(kind.to_string()).or_default() += 1;
-        let vis = whole.readings_at(&oracle_pose).into_iter().find(|r| {
-            matches!(
-                r.kind,
-                posematch::matcher::verification::ReadingKind::Visible
-            )
-        });
-        if let Some(r) = vis {
+        let vis = visible_reading(&whole, &oracle_pose);
+        let at_truth = whole.score_at(&truth);
+        let vis_truth = visible_reading(&whole, &truth);
+        if let (Some(r), Some(t)) = (vis, vis_truth) {
             println!(
-                "      visible: share {:.3} sim {:.3} chance {:.3} -> {:.3}  [{kind}]",
+                "      visible: share {:.3} sim {:.3} chance {:.3} -> {:.3}  at truth: share {:.3} sim {:.3} -> {:.3} (score {at_truth:.3}) [{kind}]",
                 r.share,
                 r.similarity,
                 r.chance,
-                r.score()
+                r.score(),
+                t.share,
+                t.similarity,
+                t.score()
             );
         }
         if kind != "found" {
@@ -125,4 +127,12 @@ fn main() {
         }
     }
     println!("{tally:#?}");
+}
+
+/// The visible-share reading of `verifier`'s template at `pose`.
+fn visible_reading(verifier: &Verifier, pose: &Pose) -> Option<Reading> {
+    verifier
+        .readings_at(pose)
+        .into_iter()
+        .find(|r| matches!(r.kind, ReadingKind::Visible))
 }
