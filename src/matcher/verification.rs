@@ -40,9 +40,9 @@ use super::time_limit::TimeLimit;
 use crate::geometry::{Pose, rotated_iou, wrap_angle_deg};
 use crate::imaging::GrayImage32;
 use crate::refine::{
-    AngleScaleGrid, Coverage, Light, LightCurve, NoiseLevel, NoisePoints, PlaneFreePoints,
-    RankPoints, Scored, ShadingPoints, Sharpness, TemplatePoints, align, align_from,
-    align_from_reach, fine_search, stayed_near,
+    AngleScaleGrid, Coverage, CoverageReading, Light, LightCurve, NoiseLevel, NoisePoints,
+    PlaneFreePoints, RankPoints, Scored, ShadingPoints, Sharpness, TemplatePoints, align,
+    align_from, align_from_reach, fine_search, stayed_near,
 };
 
 /// Screen ZNCC below which a candidate is not worth confirming: a true object at the right
@@ -726,14 +726,20 @@ impl<'a> Verifier<'a> {
                 return;
             }
         }
+        let visible = |reading: CoverageReading| Reading {
+            kind: ReadingKind::Visible,
+            similarity: reading.visible_similarity,
+            chance: chance_of_share(self.independent, reading.visible_points),
+            share: reading.visible,
+        };
         if let Some(reading) = self.coverage.measure(&samples) {
-            let reading = Reading {
-                kind: ReadingKind::Visible,
-                similarity: reading.visible_similarity,
-                chance: chance_of_share(self.independent, reading.visible_points),
-                share: reading.visible,
-            };
-            if visit(reading).is_break() {
+            if visit(visible(reading)).is_break() {
+                return;
+            }
+            // A covered cell that correlates by chance, counted as hidden ([`Coverage`]).
+            if let Some(reading) = self.coverage.measure_worst_hidden(&samples)
+                && visit(visible(reading)).is_break()
+            {
                 return;
             }
         }

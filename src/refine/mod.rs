@@ -40,7 +40,7 @@ mod shading;
 mod sharpness;
 
 pub use align::Light;
-pub(crate) use coverage::Coverage;
+pub(crate) use coverage::{Coverage, CoverageReading};
 pub(crate) use curve::LightCurve;
 pub(crate) use detrend::PlaneFreePoints;
 pub(crate) use noise::{NoiseLevel, NoisePoints};
