@@ -732,12 +732,12 @@ impl<'a> Verifier<'a> {
             chance: chance_of_share(self.independent, reading.visible_points),
             share: reading.visible,
         };
-        if let Some(reading) = self.coverage.measure(&samples) {
+        if let Some((reading, worst_hidden)) = self.coverage.readings(&samples) {
             if visit(visible(reading)).is_break() {
                 return;
             }
             // A covered cell that correlates by chance, counted as hidden ([`Coverage`]).
-            if let Some(reading) = self.coverage.measure_worst_hidden(&samples)
+            if let Some(reading) = worst_hidden
                 && visit(visible(reading)).is_break()
             {
                 return;

@@ -326,21 +326,25 @@ impl Coverage {
     /// The template's cells in the image's `samples` at a pose (the support's). `None` for a
     /// template without structure in any cell (nothing to tell a covered cell from a visible
     /// one).
+    #[cfg(test)]
     pub(crate) fn measure(&self, samples: &PoseSamples) -> Option<CoverageReading> {
-        self.measure_hiding_worst(samples, false)
+        self.readings(samples).map(|(reading, _)| reading)
     }
 
     /// [`Coverage::measure`] with the worst matching structured cell counted as hidden, where
     /// its own ZNCC is under [`WORST_CELL_BELOW`]; `None` where none is.
+    #[cfg(test)]
     pub(crate) fn measure_worst_hidden(&self, samples: &PoseSamples) -> Option<CoverageReading> {
-        self.measure_hiding_worst(samples, true)
+        self.readings(samples)
+            .and_then(|(_, worst_hidden)| worst_hidden)
     }
 
-    fn measure_hiding_worst(
+    /// [`Coverage::measure`] and [`Coverage::measure_worst_hidden`] from one pass over the
+    /// samples (the verifier reads both at every pose).
+    pub(crate) fn readings(
         &self,
         samples: &PoseSamples,
-        hide_worst: bool,
-    ) -> Option<CoverageReading> {
+    ) -> Option<(CoverageReading, Option<CoverageReading>)> {
         if self.total_weight <= 0.0 || self.points == 0 {
             return None;
         }
@@ -361,35 +365,46 @@ impl Coverage {
             matching[cell.place.1 * CELLS_PER_SIDE + cell.place.0] = Some(matches >= 1.0);
             *sums_here = sums;
         }
-        if hide_worst {
-            let worst = self
-                .cells
-                .iter()
-                .zip(&cell_sums)
-                .filter(|(cell, _)| {
-                    cell.weight > 0.0
-                        && matching[cell.place.1 * CELLS_PER_SIDE + cell.place.0] == Some(true)
-                })
-                .map(|(cell, sums)| (cell, sums.zncc()))
-                .min_by(|a, b| a.1.total_cmp(&b.1));
-            match worst {
-                Some((cell, zncc)) if zncc < WORST_CELL_BELOW => {
-                    visible -= cell.weight;
-                    matching[cell.place.1 * CELLS_PER_SIDE + cell.place.0] = Some(false);
-                }
-                _ => return None,
+        let reading = self.reading(samples, visible, &matching, &cell_sums);
+        let worst = self
+            .cells
+            .iter()
+            .zip(&cell_sums)
+            .filter(|(cell, _)| {
+                cell.weight > 0.0
+                    && matching[cell.place.1 * CELLS_PER_SIDE + cell.place.0] == Some(true)
+            })
+            .map(|(cell, sums)| (cell, sums.zncc()))
+            .min_by(|a, b| a.1.total_cmp(&b.1));
+        let worst_hidden = match worst {
+            Some((cell, zncc)) if zncc < WORST_CELL_BELOW => {
+                let mut matching = matching;
+                matching[cell.place.1 * CELLS_PER_SIDE + cell.place.0] = Some(false);
+                Some(self.reading(samples, visible - cell.weight, &matching, &cell_sums))
             }
-        }
+            _ => None,
+        };
+        Some((reading, worst_hidden))
+    }
+
+    /// The reading of the cells flagged `matching`, `visible` their summed weight.
+    fn reading(
+        &self,
+        samples: &[f32],
+        visible: f32,
+        matching: &[Option<bool>],
+        cell_sums: &[CellSums],
+    ) -> CoverageReading {
         // The structured cells that match; flat ones are judged after, by their level.
         let mut together = CellSums::default();
         let mut cells_similarity = 0.0f64;
-        for (cell, &sums) in self.cells.iter().zip(&cell_sums) {
+        for (cell, &sums) in self.cells.iter().zip(cell_sums) {
             if cell.weight <= 0.0
                 || matching[cell.place.1 * CELLS_PER_SIDE + cell.place.0] != Some(true)
             {
                 continue;
             }
-            let away = Self::unmatched_neighbours(cell.place, &matching);
+            let away = Self::unmatched_neighbours(cell.place, matching);
             let sums = if away == 0 {
                 sums
             } else {
@@ -401,9 +416,9 @@ impl Coverage {
             }
         }
         let structured_points = together.n;
-        let flat_at_level = self.flat_cells_at_level(&cell_sums, &together);
+        let flat_at_level = self.flat_cells_at_level(cell_sums, &together);
         together.add(&flat_at_level);
-        Some(CoverageReading {
+        CoverageReading {
             visible: (visible / self.total_weight).clamp(0.0, 1.0),
             visible_similarity: if together.n > 0.0 {
                 together
@@ -413,7 +428,7 @@ impl Coverage {
                 -1.0
             },
             visible_points: (together.n / self.points as f64) as f32,
-        })
+        }
     }
 }
 
