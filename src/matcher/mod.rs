@@ -37,6 +37,7 @@ use crate::model::{
     GridShape, InferenceNetwork, PoseHeads, Precision, PrecisionError, TEMPLATE_GRID, Tdcm,
     TrainedOn,
 };
+use crate::refine::NoiseLevel;
 pub use error::MatchError;
 pub use limits::{
     MAX_TEMPLATE_SIDE, MIN_IMAGE_SIDE, MIN_TEMPLATE_SIDE, TEMPLATE_LIMITS, search_limits,
@@ -619,11 +620,30 @@ pub fn with_classical_fallbacks(
     (poses, total_ms)
 }
 
+/// A noise reading ([`NoiseLevel`]) from which an image counts as noisy for the fallback: every
+/// frame with noise of 15 grey levels reads 10–11, clean and JPEG-compressed ones under 5.
+const NOISY_FROM_GREY_LEVELS: f32 = 5.0;
+
+/// Least score of an answer that only the quarter-less searches of a noisy image found. Under
+/// noise of 15 grey levels a part of fine grain can escape the whole template's classical
+/// search and screen, and the same searches without each quarter of the template (as for
+/// covered parts: [`MatchOptions::expects_covered_parts`]) reach it — its coarse template, so
+/// its peaks, differ; left out a scattered quarter of the pixels instead they reach none of
+/// them. Four more searches also give a decoy four more chances, so their answers count from
+/// this score, not from `min_score`. Grain tuning set (`scripts/grain-photos.py`, 1000 S1.5
+/// pairs, seed 0, defaults), before → at `min_score` → at 0.95: `noise-15` found 92.4 → 93.4 →
+/// 93.3 %, answers ≥ 0.9 in 1000 scenes without the part under that noise 53 → 58 → 53
+/// (docs/industrial.md, "Camera conditions").
+const NOISY_WIDER_SEARCH_BAR: f32 = 0.95;
+
 /// `answers` and, when none of them reaches `trigger_score` (the caller's `min_score`; for a
 /// template with a mask whatever they reach) and `options` ask for it, those of the classical
 /// fallback ([`classical::fallback_candidates`],
 /// verified like the network's candidates; `network_score` 0), selected together under
-/// `options`; with the milliseconds the fallback took (0 when it did not run).
+/// `options`; with the milliseconds the fallback took (0 when it did not run). Where covered
+/// parts are expected, or the image is noisy ([`NOISY_FROM_GREY_LEVELS`]; answers from
+/// [`NOISY_WIDER_SEARCH_BAR`]), and still nothing reaches `trigger_score`, the fallback also
+/// searches with each quarter of the template left out.
 pub fn with_classical_fallback(
     template: &GrayImage32,
     image: &GrayImage32,
@@ -644,16 +664,27 @@ pub fn with_classical_fallback(
         poses.extend(verify_candidates(template, size, image, candidates, options).poses);
         poses = select(poses, options, size.0, size.1);
     }
-    if options.expects_covered_parts(template) && !poses.iter().any(|p| p.score >= trigger_score) {
+    // The least score of the quarter-less searches' answers, where they run.
+    let wider = if options.expects_covered_parts(template) {
+        Some(f32::NEG_INFINITY)
+    } else if NoiseLevel::estimate(image).grey_levels() >= NOISY_FROM_GREY_LEVELS {
+        Some(NOISY_WIDER_SEARCH_BAR)
+    } else {
+        None
+    };
+    if let Some(bar) = wider
+        && !poses.iter().any(|p| p.score >= trigger_score)
+    {
         // The classical search correlates the whole template too: a covered quarter hides
         // the part from it as from the verification, so it searches without each quarter.
+        // Under noise the same four searches reach parts that the whole template's misses.
         let scorer = Verifier::for_options(template, image, options);
         for partial in verification::without_each_quarter(template) {
             if let Some(candidates) = classical::fallback_candidates(&partial, image, options) {
                 let found = verification::verify_partial(
                     &partial, &scorer, size, image, candidates, options, None,
                 );
-                poses.extend(found.poses);
+                poses.extend(found.poses.into_iter().filter(|p| p.score >= bar));
             }
         }
         poses = select(poses, options, size.0, size.1);

@@ -802,3 +802,42 @@ fn a_part_under_a_gamma_is_aligned_again_under_the_lights_curve() {
         "{plain_found} → {curved_found} of {trials}"
     );
 }
+
+/// Parts of fine grain under noise (noise-15) where nothing verified: the whole template's
+/// classical search misses most of them, and a noisy image's fallback also searches without
+/// each quarter of the template ([`with_classical_fallback`]), whose coarse peaks differ.
+#[test]
+fn a_noisy_images_fallback_also_searches_without_each_quarter() {
+    let options = MatchOptions {
+        max_instances: 1,
+        ..MatchOptions::default()
+    };
+    let min_score = options.effective_min_score();
+    let trials = 24;
+    let (mut whole, mut wider) = (0, 0);
+    for k in 0..trials {
+        // Finer grain at lower contrast than the screen test's above.
+        let image = grain(300 + k, 0.6..1.5, 0.3);
+        let truth = grain_part_pose(k);
+        let template = cut_template(&image, &truth);
+        let image = under_condition(&image, Condition::Noise15);
+        let right = |poses: &[Pose]| {
+            poses.first().is_some_and(|p| {
+                p.score >= min_score
+                    && (p.x - truth.x).hypot(p.y - truth.y) < 1.5
+                    && angle_distance_deg(p.angle_deg, truth.angle_deg) < 3.0
+            })
+        };
+        let whole_only = classical::fallback_candidates(&template, &image, &options)
+            .map(|c| verify_candidates(&template, (36.0, 36.0), &image, c, &options).poses)
+            .unwrap_or_default();
+        whole += usize::from(right(&whole_only));
+        let (found, _) = with_classical_fallback(&template, &image, vec![], &options, min_score);
+        wider += usize::from(right(&found));
+    }
+    // 5 and 18 of 24 when written.
+    assert!(
+        wider >= whole + 8,
+        "{wider} with the quarters, {whole} without, of {trials}"
+    );
+}
