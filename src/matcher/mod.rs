@@ -664,17 +664,8 @@ pub fn with_classical_fallback(
         poses.extend(verify_candidates(template, size, image, candidates, options).poses);
         poses = select(poses, options, size.0, size.1);
     }
-    // The least score of the quarter-less searches' answers, where they run.
-    let wider = if options.expects_covered_parts(template) {
-        Some(f32::NEG_INFINITY)
-    } else if NoiseLevel::estimate(image).grey_levels() >= NOISY_FROM_GREY_LEVELS {
-        Some(NOISY_WIDER_SEARCH_BAR)
-    } else {
-        None
-    };
-    if let Some(bar) = wider
-        && !poses.iter().any(|p| p.score >= trigger_score)
-    {
+    let nothing_verified = !poses.iter().any(|p| p.score >= trigger_score);
+    if nothing_verified && let Some(bar) = quarter_less_bar(template, image, options) {
         // The classical search correlates the whole template too: a covered quarter hides
         // the part from it as from the verification, so it searches without each quarter.
         // Under noise the same four searches reach parts that the whole template's misses.
@@ -690,6 +681,23 @@ pub fn with_classical_fallback(
         poses = select(poses, options, size.0, size.1);
     }
     (poses, start.elapsed().as_secs_f64() * 1e3)
+}
+
+/// The least score of the fallback's quarter-less searches' answers where they run: any where
+/// covered parts are expected, [`NOISY_WIDER_SEARCH_BAR`] in a noisy image
+/// ([`NOISY_FROM_GREY_LEVELS`]); `None` (not searched) elsewhere.
+fn quarter_less_bar(
+    template: &GrayImage32,
+    image: &GrayImage32,
+    options: &MatchOptions,
+) -> Option<f32> {
+    if options.expects_covered_parts(template) {
+        Some(f32::NEG_INFINITY)
+    } else if NoiseLevel::estimate(image).grey_levels() >= NOISY_FROM_GREY_LEVELS {
+        Some(NOISY_WIDER_SEARCH_BAR)
+    } else {
+        None
+    }
 }
 
 /// The least heatmap value of a peak the peak reading considers. With verification every peak
